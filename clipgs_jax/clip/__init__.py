@@ -1,0 +1,1 @@
+"""CLIP towers in Flax: tokenizer, model, weight import and preprocessing."""
