@@ -59,7 +59,8 @@ def render_ref(params, alive, cam, background, near=0.2, sh_degree=None):
 
   center = -rot.T @ jnp.asarray(cam.translation, dtype)
   d = params.means - center
-  d = d / jnp.sqrt(jnp.sum(d * d, -1, keepdims=True))
+  dn = jnp.sqrt(jnp.sum(d * d, -1, keepdims=True))
+  d = d / jnp.where(dn > 0, dn, 1.0)   # a Gaussian at the camera centre
   degree = params.sh_rest.shape[1] and sh.degree_of(params.sh_rest.shape[1])
   colors = sh.to_color(params.sh_dc, params.sh_rest, d,
                        degree if sh_degree is None else sh_degree)
@@ -74,7 +75,8 @@ def render_ref(params, alive, cam, background, near=0.2, sh_degree=None):
   raw = opac[order] * jnp.exp(-power)
   keep = valid[order] & (power >= 0) & (raw >= 1 / 255)
   alpha = jnp.where(keep, jnp.minimum(raw, 0.99), 0.0)
-  t_after = jnp.cumprod(1 - alpha, axis=1)
+  # associative_scan: jnp.cumprod is O(N^2) on the CPU backend.
+  t_after = jax.lax.associative_scan(jnp.multiply, 1 - alpha, axis=1)
   include = t_after >= 1e-4
   t_before = jnp.concatenate([jnp.ones_like(t_after[:, :1]),
                               t_after[:, :-1]], 1)

@@ -1,0 +1,125 @@
+"""Times the tile rasterizer: custom VJP against plain autodiff of its forward.
+
+Prints one JSON line per (N, image size, variant): forward ms, forward +
+backward ms, backward / forward, XLA's peak buffer estimate for forward +
+backward, tile overflow and the longest tile list.
+
+  python experiments/bench_rasterizer.py
+  python experiments/bench_rasterizer.py --num_gaussians=10000 --sizes=256x256
+"""
+
+import json
+import time
+
+from absl import app
+from absl import flags
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from clipgs_jax import camera
+from clipgs_jax import config
+from clipgs_jax import gaussians
+from clipgs_jax import project
+from clipgs_jax import rasterize
+
+_NUM = flags.DEFINE_list("num_gaussians", ["1000", "10000", "100000"],
+                         "Scene sizes N.")
+_SIZES = flags.DEFINE_list("sizes", ["256x256", "512x384"],
+                           "Image sizes WxH.")
+_VARIANTS = flags.DEFINE_list("variants", ["custom_vjp", "autodiff"],
+                              "custom_vjp and/or autodiff.")
+_RADIUS = flags.DEFINE_list("radius_px", ["2", "20"],
+                            "Range of projected 3-sigma radii, pixels.")
+_TILE_BUDGET = flags.DEFINE_integer("tile_budget", 4096, "K.")
+_CHUNK = flags.DEFINE_integer("chunk_size", 32, "B.")
+_REPEATS = flags.DEFINE_integer("repeats", 5, "Timed runs (median).")
+_AUTODIFF_MAX_N = flags.DEFINE_integer(
+    "autodiff_max_n", 100000, "Skip autodiff above this N (memory).")
+
+
+def make_scene(n, width, height, r_lo, r_hi, seed=0):
+  """N Gaussians in the view frustum with 3-sigma radii in [r_lo, r_hi] px."""
+  rng = np.random.default_rng(seed)
+  focal = 0.8 * max(width, height)
+  cam = camera.Camera.create(np.eye(3), np.zeros(3), focal, focal, width / 2,
+                             height / 2, width, height)
+  z = rng.uniform(2.0, 8.0, n)
+  u = rng.uniform(0, width, n)
+  v = rng.uniform(0, height, n)
+  means = np.stack([(u - width / 2) * z / focal, (v - height / 2) * z / focal,
+                    z], -1)
+  radius = rng.uniform(r_lo, r_hi, n)
+  sigma = radius / 3 * z / focal                      # world std dev
+  aniso = np.exp(rng.uniform(-0.5, 0.5, (n, 3)))
+  params = gaussians.GaussianParams(
+      means=jnp.asarray(means, jnp.float32),
+      log_scales=jnp.asarray(np.log(sigma[:, None] * aniso), jnp.float32),
+      quats=jnp.asarray(rng.normal(size=(n, 4)), jnp.float32),
+      opacity_logits=jnp.asarray(rng.normal(0.0, 1.5, n), jnp.float32),
+      sh_dc=jnp.asarray(rng.normal(0, 0.5, (n, 3)), jnp.float32),
+      sh_rest=jnp.zeros((n, 0, 3), jnp.float32))
+  return params, jnp.ones(n, bool), cam
+
+
+def _time(fn, *args):
+  jax.block_until_ready(fn(*args))
+  times = []
+  for _ in range(_REPEATS.value):
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    times.append(time.perf_counter() - t0)
+  return 1e3 * float(np.median(times))
+
+
+def _peak_bytes(fn, *args):
+  mem = fn.lower(*args).compile().memory_analysis()
+  if mem is None:
+    return None
+  return int(mem.temp_size_in_bytes + mem.argument_size_in_bytes
+             + mem.output_size_in_bytes)
+
+
+def bench(n, width, height, variant):
+  r_lo, r_hi = (float(r) for r in _RADIUS.value)
+  params, alive, cam = make_scene(n, width, height, r_lo, r_hi)
+  cfg = config.RenderConfig(tile_budget=_TILE_BUDGET.value,
+                            chunk_size=_CHUNK.value)
+  bg = jnp.zeros(3)
+  custom = variant == "custom_vjp"
+
+  def forward(p):
+    proj = project.project(p, alive, cam, near=cfg.near, sh_degree=0)
+    return rasterize.rasterize(proj, cam, bg, cfg, custom_vjp=custom)
+
+  def loss(p):
+    return jnp.mean(forward(p).image)
+
+  fwd = jax.jit(lambda p: forward(p).image)
+  grad = jax.jit(jax.grad(loss))
+  out = jax.jit(forward)(params)
+  fwd_ms = _time(fwd, params)
+  fb_ms = _time(grad, params)
+  return dict(
+      n=n, width=width, height=height, variant=variant,
+      forward_ms=round(fwd_ms, 1), forward_backward_ms=round(fb_ms, 1),
+      backward_over_forward=round((fb_ms - fwd_ms) / fwd_ms, 2),
+      peak_bytes_fwd_bwd=_peak_bytes(grad, params),
+      num_overflow=int(out.num_overflow),
+      max_tile_count=int(out.max_tile_count),
+      backend=jax.default_backend())
+
+
+def main(argv):
+  del argv
+  for size in _SIZES.value:
+    width, height = (int(s) for s in size.split("x"))
+    for n in (int(float(x)) for x in _NUM.value):
+      for variant in _VARIANTS.value:
+        if variant == "autodiff" and n > _AUTODIFF_MAX_N.value:
+          continue
+        print(json.dumps(bench(n, width, height, variant)), flush=True)
+
+
+if __name__ == "__main__":
+  app.run(main)
