@@ -115,11 +115,11 @@ def look_at(eye, target, up, fx, fy, width, height, dtype=np.float32
   eye, target, up = (np.asarray(v, np.float64) for v in (eye, target, up))
   z = target - eye
   z /= np.linalg.norm(z)
-  x = np.cross(z, -up)
+  x = np.cross(z, up)       # right-handed with y = -up: x = y cross z
   if np.linalg.norm(x) < 1e-9:
     raise ValueError("look_at: `up` is parallel to the viewing direction.")
   x /= np.linalg.norm(x)
-  y = np.cross(z, x)
+  y = np.cross(z, x)        # points down in the image, i.e. along -up
   rotation = np.stack([x, y, z])   # rows are the camera axes in world frame
   translation = -rotation @ eye
   return Camera.create(rotation, translation, fx, fy, width / 2, height / 2,

@@ -221,14 +221,16 @@ def _forward_init(grid, splats, pix, pix_inside):
 def _forward_round(grid, splats, tables, pix, pix_inside, carry):
   """Blends list entries [r*B, (r+1)*B) of every tile into the carry.
 
-  The loop over the B entries is unrolled on [T, P] arrays, which stay in
-  cache; a [T, B, P] formulation was memory-bound (400 MB per round).
+  The B entries are walked one at a time on [T, P] arrays, which stay in
+  cache (a [T, B, P] formulation was memory-bound at 400 MB per round), in a
+  fori_loop rather than unrolled (unrolling B = 32 took a minute to compile).
   """
   r, trans, color, depth, n_contrib, done, contrib = carry
   gid, in_list, (means2d, conics, colors, opacities, depths) = _entries(
       r, splats, tables, grid.chunk_size)
-  per_entry = []
-  for b in range(grid.chunk_size):
+
+  def entry(b, state):
+    trans, color, depth, n_contrib, done, per_entry = state
     alpha = _alpha(pix, means2d[:, b], conics[:, b], opacities[:, b])[0]
     t_after = trans * (1.0 - alpha)
     include = ((t_after >= TRANSMITTANCE_THRESHOLD) & ~done
@@ -240,8 +242,15 @@ def _forward_round(grid, splats, tables, pix, pix_inside, carry):
     n_contrib = n_contrib + include
     # Out of list or below the transmittance floor: this pixel is finished.
     done = done | ~include
-    per_entry.append(jnp.sum(jnp.where(pix_inside, w, 0.0), axis=1))
-  per_entry = jnp.where(in_list, jnp.stack(per_entry, axis=1), 0.0)
+    per_entry = per_entry.at[:, b].set(
+        jnp.sum(jnp.where(pix_inside, w, 0.0), axis=1))
+    return trans, color, depth, n_contrib, done, per_entry
+
+  state = (trans, color, depth, n_contrib, done,
+           jnp.zeros(in_list.shape, trans.dtype))
+  trans, color, depth, n_contrib, done, per_entry = jax.lax.fori_loop(
+      0, grid.chunk_size, entry, state)
+  per_entry = jnp.where(in_list, per_entry, 0.0)
   contrib = contrib.at[gid.reshape(-1)].add(per_entry.reshape(-1))
   return r + 1, trans, color, depth, n_contrib, done, contrib
 
@@ -312,11 +321,11 @@ def _blend_bwd(grid, residuals, cotangents):
 
   def body(carry):
     r, trans, v_prefix, grads = carry
-    gid, in_list, (means2d, conics, colors, _, depths) = _entries(
+    gid, in_list, (means2d, conics, colors, opacities, depths) = _entries(
         r, splats, tables, grid.chunk_size)
-    opacities = splats[3][gid]
-    rows = []
-    for b in range(grid.chunk_size):
+
+    def entry(b, state):
+      trans, v_prefix, rows = state
       alpha, raw, gauss, dx, dy, keep = _alpha(
           pix, means2d[:, b], conics[:, b], opacities[:, b])
       include = r * grid.chunk_size + b < n_contrib               # [T, P]
@@ -331,7 +340,7 @@ def _blend_bwd(grid, residuals, cotangents):
       g_raw = jnp.where(keep & (raw < MAX_ALPHA) & include, g_alpha, 0.0)
       g_power = -g_raw * raw
       ca, cb, cc = (conics[:, b, i, None] for i in range(3))
-      rows.append(jnp.concatenate([
+      row = jnp.concatenate([
           jnp.stack([jnp.sum(-g_power * (ca * dx + cb * dy), 1),
                      jnp.sum(-g_power * (cb * dx + cc * dy), 1),
                      jnp.sum(g_power * 0.5 * dx * dx, 1),
@@ -339,9 +348,13 @@ def _blend_bwd(grid, residuals, cotangents):
                      jnp.sum(g_power * 0.5 * dy * dy, 1)], -1),
           jnp.einsum("tp,tpc->tc", w, g_color),
           jnp.stack([jnp.sum(g_raw * gauss, 1), jnp.sum(w * g_depth, 1)],
-                    -1)], -1))                                   # [T, 10]
-      trans = trans * (1.0 - alpha)
-    rows = jnp.where(in_list[..., None], jnp.stack(rows, axis=1), 0.0)
+                    -1)], -1)                                    # [T, 10]
+      return trans * (1.0 - alpha), v_prefix, rows.at[:, b].set(row)
+
+    rows = jnp.zeros(in_list.shape + (10,), dtype)
+    trans, v_prefix, rows = jax.lax.fori_loop(
+        0, grid.chunk_size, entry, (trans, v_prefix, rows))
+    rows = jnp.where(in_list[..., None], rows, 0.0)
     grads = grads.at[gid.reshape(-1)].add(rows.reshape(-1, 10))
     return r + 1, trans, v_prefix, grads
 

@@ -24,9 +24,9 @@ def random_params(n, seed=0, degree=1, dtype=jnp.float32, spread=1.0,
 
 def front_camera(width=37, height=29, focal=40.0, distance=4.0,
                  dtype=np.float32):
-  """A camera on the -z axis looking at the origin (world y up is -y)."""
+  """A camera on the -z axis looking at the origin, world +y up."""
   return camera.look_at([0.0, 0.0, -distance], [0.0, 0.0, 0.0],
-                        [0.0, -1.0, 0.0], focal, focal, width, height,
+                        [0.0, 1.0, 0.0], focal, focal, width, height,
                         dtype=dtype)
 
 
