@@ -339,13 +339,16 @@ def _blend_bwd(grid, residuals, cotangents):
       # alpha = min(0.99, o G), G = exp(-power): the cap has zero slope.
       g_raw = jnp.where(keep & (raw < MAX_ALPHA) & include, g_alpha, 0.0)
       g_power = -g_raw * raw
-      ca, cb, cc = (conics[:, b, i, None] for i in range(3))
+      # power = a dx^2 / 2 + b dx dy + c dy^2 / 2 with dx = px - mean_x, so
+      # every splat gradient is a conic-weighted moment of g_power over the
+      # tile's pixels.
+      gx, gy = jnp.sum(g_power * dx, 1), jnp.sum(g_power * dy, 1)
+      ca, cb, cc = (conics[:, b, i] for i in range(3))
       row = jnp.concatenate([
-          jnp.stack([jnp.sum(-g_power * (ca * dx + cb * dy), 1),
-                     jnp.sum(-g_power * (cb * dx + cc * dy), 1),
-                     jnp.sum(g_power * 0.5 * dx * dx, 1),
+          jnp.stack([-(ca * gx + cb * gy), -(cb * gx + cc * gy),
+                     0.5 * jnp.sum(g_power * dx * dx, 1),
                      jnp.sum(g_power * dx * dy, 1),
-                     jnp.sum(g_power * 0.5 * dy * dy, 1)], -1),
+                     0.5 * jnp.sum(g_power * dy * dy, 1)], -1),
           jnp.einsum("tp,tpc->tc", w, g_color),
           jnp.stack([jnp.sum(g_raw * gauss, 1), jnp.sum(w * g_depth, 1)],
                     -1)], -1)                                    # [T, 10]
