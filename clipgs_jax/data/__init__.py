@@ -1,0 +1,1 @@
+"""Host-side data: COLMAP models, images, scenes and the default scene."""

@@ -1,0 +1,407 @@
+"""COLMAP sparse models via pycolmap: poses, pinhole intrinsics, points."""
+
+import dataclasses
+import hashlib
+import os
+import shutil
+import struct
+import uuid
+
+import numpy as np
+import pycolmap
+
+# Models that are exactly pinhole when every distortion parameter is zero
+# (polynomial radial/tangential terms only; fisheye projections are not).
+_POLYNOMIAL_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
+_PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
+
+_MODEL_FILES = ("cameras", "images", "points3D")
+_FIX = ("re-run COLMAP (mapper or model_converter) to write "
+        "sparse/0/{cameras,images,points3D}.bin")
+
+
+@dataclasses.dataclass(frozen=True)
+class Model:
+  """A COLMAP model with pinhole cameras; images sorted by name.
+
+  Attributes:
+    names: tuple of N str, image names relative to `image_dir`, sorted.
+    rotations: float64 [N, 3, 3], world-to-camera rotations R.
+    translations: float64 [N, 3], world-to-camera translations t.
+    intrinsics: float64 [N, 4], (fx, fy, cx, cy) in pixels, COLMAP's
+      convention (pixel centres at +0.5), the same as `camera.py`.
+    sizes: int64 [N, 2], (width, height) in pixels.
+    points: float32 [P, 3], sparse points in world coordinates.
+    point_colors: uint8 [P, 3], their RGB colours.
+    image_dir: str, folder the image names are relative to (the undistorted
+      copy when the source cameras were distorted).
+    sparse_dir: str, folder the model was read from.
+    undistorted: bool, True if the images were undistorted by pycolmap.
+  """
+  names: tuple[str, ...]
+  rotations: np.ndarray
+  translations: np.ndarray
+  intrinsics: np.ndarray
+  sizes: np.ndarray
+  points: np.ndarray
+  point_colors: np.ndarray
+  image_dir: str
+  sparse_dir: str
+  undistorted: bool
+
+
+def cache_root() -> str:
+  """User cache folder: $CLIPGS_JAX_CACHE, else $XDG_CACHE_HOME/clipgs_jax."""
+  if os.environ.get("CLIPGS_JAX_CACHE"):
+    return os.environ["CLIPGS_JAX_CACHE"]
+  base = os.environ.get("XDG_CACHE_HOME") or os.path.join(
+      os.path.expanduser("~"), ".cache")
+  return os.path.join(base, "clipgs_jax")
+
+
+def default_cache_dir(scene_path: str) -> str:
+  """Per-scene cache folder, keyed by the scene's real path.
+
+  It lives in the user cache (never inside the scene), so read-only scenes
+  work and datasets are never modified.
+  """
+  real = os.path.realpath(scene_path)
+  digest = hashlib.sha1(real.encode()).hexdigest()[:12]
+  name = os.path.basename(real.rstrip(os.sep)) or "scene"
+  return os.path.join(cache_root(), "scenes", f"{name}-{digest}")
+
+
+def _attr(obj, name):
+  """Value of an attribute that is a method in some pycolmap versions."""
+  value = getattr(obj, name)
+  return value() if callable(value) else value
+
+
+def find_sparse_dir(scene_path: str) -> str:
+  """The model folder: `sparse/0`, else `sparse` if it holds a model."""
+  if not os.path.isdir(scene_path):
+    raise FileNotFoundError(f"scene folder not found: {scene_path}")
+  for sub in (os.path.join("sparse", "0"), "sparse"):
+    folder = os.path.join(scene_path, sub)
+    if any(os.path.isfile(os.path.join(folder, f"cameras.{ext}"))
+           for ext in ("bin", "txt")):
+      return folder
+  raise FileNotFoundError(
+      f"no COLMAP model in {os.path.join(scene_path, 'sparse', '0')} "
+      f"(cameras.bin or cameras.txt missing); {_FIX}.")
+
+
+class _Reader:
+  """Bounds-checked little-endian reads from one binary model file."""
+
+  def __init__(self, path: str):
+    self.path = path
+    with open(path, "rb") as f:
+      self.data = f.read()
+    self.pos = 0
+
+  def fail(self, what: str):
+    name = os.path.basename(self.path)
+    raise ValueError(f"corrupt COLMAP file {self.path}: {what} at byte "
+                     f"{self.pos} of {len(self.data)}; re-export {name} "
+                     "with COLMAP.")
+
+  def read(self, fmt: str):
+    size = struct.calcsize("<" + fmt)
+    if self.pos + size > len(self.data):
+      self.fail("file ends early (truncated or empty)")
+    values = struct.unpack_from("<" + fmt, self.data, self.pos)
+    self.pos += size
+    return values
+
+  def skip(self, size: int):
+    if self.pos + size > len(self.data):
+      self.fail("file ends early (truncated or empty)")
+    self.pos += size
+
+  def count(self, min_record: int) -> int:
+    (n,) = self.read("Q")
+    if n * min_record > len(self.data) - self.pos:
+      self.fail(f"record count {n} does not fit the file")
+    return n
+
+  def finish(self):
+    if self.pos != len(self.data):
+      self.fail("unexpected trailing bytes")
+
+
+def _num_params() -> dict[int, tuple[str, int]]:
+  """Camera model id -> (name, number of parameters), from pycolmap itself."""
+  table = {}
+  for name, model_id in pycolmap.CameraModelId.__members__.items():
+    if name == "INVALID":
+      continue
+    cam = pycolmap.Camera.create_from_model_id(0, model_id, 1.0, 2, 2)
+    table[int(model_id)] = (name, len(cam.params))
+  return table
+
+
+def _check_binary(folder: str) -> None:
+  """Walks every record of the .bin files before pycolmap reads them.
+
+  pycolmap trusts the record counts it reads: a truncated points3D.bin made
+  it allocate memory without bound here, instead of raising. So the layout
+  (COLMAP's documented little-endian records) is verified first.
+  """
+  models = _num_params()
+  path = os.path.join(folder, "cameras.bin")
+  r = _Reader(path)
+  for _ in range(r.count(24)):
+    cam_id, model_id, _, _ = r.read("iiQQ")
+    if model_id not in models:
+      raise ValueError(
+          f"{path}: camera {cam_id} has unknown camera model id {model_id}; "
+          f"supported: {', '.join(n for n, _ in models.values())}.")
+    r.skip(8 * models[model_id][1])
+  r.finish()
+  path = os.path.join(folder, "rigs.bin")
+  if os.path.isfile(path):
+    r = _Reader(path)
+    for _ in range(r.count(8)):
+      _, num_sensors = r.read("II")
+      if num_sensors > 0:
+        r.skip(8)
+      for _ in range(max(0, num_sensors - 1)):
+        _, _, has_pose = r.read("iIB")
+        r.skip(56 if has_pose else 0)
+    r.finish()
+  path = os.path.join(folder, "frames.bin")
+  if os.path.isfile(path):
+    r = _Reader(path)
+    for _ in range(r.count(68)):
+      r.skip(64)
+      (num_data,) = r.read("I")
+      r.skip(16 * num_data)
+    r.finish()
+  path = os.path.join(folder, "images.bin")
+  r = _Reader(path)
+  for _ in range(r.count(73)):
+    r.skip(64)
+    end = r.data.find(b"\0", r.pos)
+    if end < 0:
+      r.fail("image name is not terminated")
+    r.pos = end + 1
+    (num_points2d,) = r.read("Q")
+    r.skip(24 * num_points2d)
+  r.finish()
+  path = os.path.join(folder, "points3D.bin")
+  r = _Reader(path)
+  for _ in range(r.count(51)):
+    r.skip(43)
+    (track_len,) = r.read("Q")
+    r.skip(8 * track_len)
+  r.finish()
+
+
+def _check_text(folder: str) -> None:
+  """Checks camera model names in cameras.txt (clearer than pycolmap's)."""
+  names = {n for n in pycolmap.CameraModelId.__members__ if n != "INVALID"}
+  path = os.path.join(folder, "cameras.txt")
+  with open(path, encoding="utf-8", errors="replace") as f:
+    for line_no, line in enumerate(f, 1):
+      fields = line.split()
+      if not fields or fields[0].startswith("#"):
+        continue
+      if len(fields) < 2 or fields[1] not in names:
+        model = fields[1] if len(fields) > 1 else "(none)"
+        raise ValueError(
+            f"{path}:{line_no}: unknown camera model {model}; supported: "
+            f"{', '.join(sorted(names))}.")
+
+
+def read_reconstruction(sparse_dir: str) -> pycolmap.Reconstruction:
+  """Reads a binary (preferred, as COLMAP does) or text model, checked."""
+  binary = os.path.isfile(os.path.join(sparse_dir, "cameras.bin"))
+  ext = "bin" if binary else "txt"
+  for name in _MODEL_FILES:
+    path = os.path.join(sparse_dir, f"{name}.{ext}")
+    if not os.path.isfile(path):
+      raise FileNotFoundError(f"COLMAP model file missing: {path}; {_FIX}.")
+  if binary:
+    _check_binary(sparse_dir)
+  else:
+    _check_text(sparse_dir)
+  try:
+    rec = pycolmap.Reconstruction(sparse_dir)
+  except (ValueError, IndexError, RuntimeError, MemoryError) as e:
+    msg = " ".join(str(e).split())[:200]
+    raise ValueError(f"corrupt COLMAP model in {sparse_dir}: {msg}; "
+                     f"{_FIX}.") from None
+  return rec
+
+
+def _registered(rec: pycolmap.Reconstruction) -> list:
+  images = []
+  for image in rec.images.values():
+    # pycolmap >= 3.12 says `has_pose`; older versions said `registered`.
+    posed = _attr(image, "has_pose" if hasattr(image, "has_pose")
+                  else "registered")
+    if posed:
+      images.append(image)
+  return sorted(images, key=lambda im: im.name)
+
+
+def _pose(image) -> tuple[np.ndarray, np.ndarray]:
+  """(R [3, 3], t [3]) world-to-camera, across pycolmap API versions."""
+  if hasattr(image, "cam_from_world"):
+    rigid = _attr(image, "cam_from_world")
+    matrix = np.asarray(_attr(rigid, "matrix"), np.float64)   # [3, 4]
+    return matrix[:, :3], matrix[:, 3]
+  return (np.asarray(image.rotmat(), np.float64),
+          np.asarray(image.tvec, np.float64))
+
+
+def _needs_undistortion(cam) -> bool:
+  """True for distorted cameras; raises for ones that cannot be handled."""
+  name = _attr(cam, "model_name") if hasattr(cam, "model_name") else (
+      cam.model.name)
+  if name in _PINHOLE_MODELS:
+    return False
+  if hasattr(cam, "is_perspective") and not _attr(cam, "is_perspective"):
+    raise ValueError(
+        f"camera {cam.camera_id} uses the non-perspective model {name}, "
+        "which cannot be undistorted to a pinhole; re-run COLMAP with a "
+        "perspective camera model.")
+  extra = np.asarray(cam.params)[list(_attr(cam, "extra_params_idxs"))]
+  return not (name in _POLYNOMIAL_MODELS and np.all(extra == 0))
+
+
+def _intrinsics(cam) -> np.ndarray:
+  return np.array([_attr(cam, "focal_length_x"), _attr(cam, "focal_length_y"),
+                   _attr(cam, "principal_point_x"),
+                   _attr(cam, "principal_point_y")], np.float64)
+
+
+def _check_images_exist(image_dir: str, images) -> None:
+  for image in images:
+    path = os.path.join(image_dir, image.name)
+    if not os.path.isfile(path):
+      raise FileNotFoundError(
+          f"image listed in the COLMAP model is missing: {path}; restore it "
+          "or remove it from the model.")
+
+
+def _fingerprint(paths) -> str:
+  parts = []
+  for path in paths:
+    st = os.stat(path)
+    parts.append(f"{os.path.realpath(path)}|{st.st_size}|{st.st_mtime_ns}")
+  return hashlib.sha1("\n".join(parts).encode()).hexdigest()[:12]
+
+
+def _undistort(sparse_dir: str, image_dir: str, names, cache_dir: str) -> str:
+  """Undistorted COLMAP workspace (images/ + sparse/) in the cache.
+
+  Keyed by the model files, so a changed model is undistorted again. Built
+  in a temp folder and renamed into place, so a crash never leaves a
+  half-written copy that later runs would trust.
+  """
+  model_files = sorted(os.path.join(sparse_dir, f)
+                       for f in os.listdir(sparse_dir)
+                       if f.endswith((".bin", ".txt")))
+  key = _fingerprint(model_files + [image_dir])
+  final = os.path.join(cache_dir, f"undistorted-{key}")
+  if os.path.isdir(os.path.join(final, "sparse")):
+    return final
+  os.makedirs(cache_dir, exist_ok=True)
+  tmp = os.path.join(cache_dir, f".tmp-undistort-{os.getpid()}-"
+                     f"{uuid.uuid4().hex[:8]}")
+  level = pycolmap.logging.minloglevel
+  try:
+    # COLMAP logs one INFO line per image; keep warnings and errors.
+    pycolmap.logging.minloglevel = 1
+    pycolmap.undistort_images(tmp, sparse_dir, image_dir,
+                              image_names=list(names), jpeg_quality=100)
+  except Exception as e:  # pylint: disable=broad-except
+    shutil.rmtree(tmp, ignore_errors=True)
+    msg = " ".join(str(e).split())[:200]
+    raise ValueError(f"pycolmap could not undistort {sparse_dir} into "
+                     f"{cache_dir}: {msg}; undistort the scene with "
+                     "`colmap image_undistorter` and load that.") from None
+  finally:
+    pycolmap.logging.minloglevel = level
+  for name in names:
+    # pycolmap logs and skips images it cannot read; never cache that.
+    if not os.path.isfile(os.path.join(tmp, "images", name)):
+      shutil.rmtree(tmp, ignore_errors=True)
+      raise ValueError(f"pycolmap could not undistort "
+                       f"{os.path.join(image_dir, name)} (unreadable "
+                       "image?); replace it or remove it from the model.")
+  # Only images/ and sparse/ are needed; the dense-stereo stubs are not.
+  shutil.rmtree(os.path.join(tmp, "stereo"), ignore_errors=True)
+  for f in os.listdir(tmp):
+    if f.endswith(".sh"):
+      os.remove(os.path.join(tmp, f))
+  try:
+    os.rename(tmp, final)
+  except OSError:
+    # Another process finished the same undistortion first; use its copy.
+    shutil.rmtree(tmp, ignore_errors=True)
+    if not os.path.isdir(os.path.join(final, "sparse")):
+      raise
+  return final
+
+
+def load_model(scene_path: str, cache_dir: str | None = None,
+               image_folder: str = "images") -> Model:
+  """Reads `<scene>/sparse/0` and returns pinhole cameras and points.
+
+  SIMPLE_PINHOLE (fx = fy = f) and PINHOLE are used as they are, as are the
+  polynomial models when all their distortion terms are exactly zero. Other
+  cameras are undistorted once with pycolmap.undistort_images into
+  `cache_dir` (default `default_cache_dir(scene_path)`), and the undistorted
+  PINHOLE model and images are returned instead: a distorted camera is never
+  treated as a pinhole.
+
+  Args:
+    scene_path: str, folder with `images/` and `sparse/0/` (binary or text).
+    cache_dir: str or None, writable per-scene cache folder.
+    image_folder: str, image folder name inside the scene.
+
+  Returns:
+    A `Model`; only images with a pose (registered) are included.
+  """
+  sparse_dir = find_sparse_dir(scene_path)
+  rec = read_reconstruction(sparse_dir)
+  images = _registered(rec)
+  if not images:
+    raise ValueError(f"COLMAP model {sparse_dir} has no registered images "
+                     "(empty model?); " + _FIX + ".")
+  image_dir = os.path.join(scene_path, image_folder)
+  _check_images_exist(image_dir, images)
+  undistorted = any(_needs_undistortion(rec.cameras[im.camera_id])
+                    for im in images)
+  if undistorted:
+    cache_dir = cache_dir or default_cache_dir(scene_path)
+    workspace = _undistort(sparse_dir, image_dir, [im.name for im in images],
+                           cache_dir)
+    sparse_dir = os.path.join(workspace, "sparse")
+    image_dir = os.path.join(workspace, "images")
+    rec = read_reconstruction(sparse_dir)
+    images = _registered(rec)
+    for im in images:
+      if _needs_undistortion(rec.cameras[im.camera_id]):
+        raise ValueError(f"{sparse_dir}: camera {im.camera_id} is still "
+                         "distorted after undistortion; delete the cache "
+                         f"folder {workspace} and retry.")
+    _check_images_exist(image_dir, images)
+  poses = [_pose(im) for im in images]
+  cams = [rec.cameras[im.camera_id] for im in images]
+  ids = sorted(rec.points3D)
+  points = np.array([rec.points3D[i].xyz for i in ids],
+                    np.float32).reshape(-1, 3)
+  colors = np.array([rec.points3D[i].color for i in ids],
+                    np.uint8).reshape(-1, 3)
+  return Model(
+      names=tuple(im.name for im in images),
+      rotations=np.stack([p[0] for p in poses]),
+      translations=np.stack([p[1] for p in poses]),
+      intrinsics=np.stack([_intrinsics(c) for c in cams]),
+      sizes=np.array([[c.width, c.height] for c in cams], np.int64),
+      points=points, point_colors=colors, image_dir=image_dir,
+      sparse_dir=sparse_dir, undistorted=undistorted)

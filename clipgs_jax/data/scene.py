@@ -1,0 +1,242 @@
+"""Scenes for training: COLMAP poses, images, masks and the train/test split."""
+
+import dataclasses
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from clipgs_jax import camera
+from clipgs_jax.data import colmap
+from clipgs_jax.data import images
+
+# RobustNeRF file-name tokens: `extra` views are clean held-out test views,
+# `clutter` views have distractors, `clean` views are their clean twins.
+_ROBUSTNERF_TOKENS = ("clutter", "extra", "clean")
+TRAIN_SPLITS = ("clutter", "clean")
+# Without RobustNeRF names, every 8th image by sorted name is a test view
+# (the convention of Mip-NeRF 360 and 3DGS).
+TEST_EVERY = 8
+# 3DGS's "cameras_extent": camera-centre radius with a 10% margin.
+EXTENT_MARGIN = 1.1
+MASK_THRESHOLD = 0.5
+
+
+@dataclasses.dataclass(frozen=True)
+class Views:
+  """Views of one split, all of one image size.
+
+  Attributes:
+    cameras: camera.Camera whose array fields have a leading [V] axis
+      (rotation [V, 3, 3], translation [V, 3], fx/fy/cx/cy [V]); width and
+      height are shared by all views.
+    images: float32 [V, H, W, 3] in [0, 1].
+    names: tuple of V str, image names (COLMAP names), sorted.
+    masks: bool [V, H, W], True = transient pixel; None when the scene has
+      no masks (test views never have masks).
+  """
+  cameras: camera.Camera
+  images: np.ndarray
+  names: tuple[str, ...]
+  masks: np.ndarray | None
+
+  def __len__(self) -> int:
+    return len(self.names)
+
+
+@dataclasses.dataclass(frozen=True)
+class Scene:
+  """A loaded scene.
+
+  Attributes:
+    train, test: Views.
+    points: float32 [P, 3], sparse SfM points (P may be 0).
+    point_colors: float32 [P, 3] in [0, 1].
+    extent: float, radius of the training camera centres around their mean,
+      times 1.1 (3DGS's cameras_extent); scales learning rates and
+      densification thresholds.
+    path: str, the scene folder.
+  """
+  train: Views
+  test: Views
+  points: np.ndarray
+  point_colors: np.ndarray
+  extent: float
+  path: str
+
+
+def camera_at(cameras: camera.Camera, i) -> camera.Camera:
+  """The i-th camera of stacked cameras.
+
+  Args:
+    cameras: camera.Camera with a leading [V] axis on its array fields.
+    i: int, or an int32 [] array that may be traced under jit.
+
+  Returns:
+    camera.Camera with unbatched fields (numpy for a Python int and numpy
+    fields, jax arrays otherwise).
+  """
+  if isinstance(i, (int, np.integer)) and isinstance(cameras.fx, np.ndarray):
+    return jax.tree.map(lambda x: x[i], cameras)
+  return jax.tree.map(lambda x: jnp.take(jnp.asarray(x), i, axis=0), cameras)
+
+
+def _split_names(names, train_split: str, sparse_dir: str):
+  """(train indices, test indices) into the sorted `names`."""
+  if train_split not in TRAIN_SPLITS:
+    raise ValueError(f"train_split must be one of {TRAIN_SPLITS}, got "
+                     f"{train_split!r}.")
+  tokens = [[t for t in _ROBUSTNERF_TOKENS if t in os.path.basename(n)]
+            for n in names]
+  if any(tokens):
+    # RobustNeRF naming: every image must say which split it belongs to.
+    for name, found in zip(names, tokens):
+      if len(found) != 1:
+        raise ValueError(
+            f"image {name} in {sparse_dir} has {found or 'none'} of the "
+            f"RobustNeRF split words {_ROBUSTNERF_TOKENS} in its name, "
+            "expected exactly one; rename it.")
+    test = [i for i, t in enumerate(tokens) if t[0] == "extra"]
+    train = [i for i, t in enumerate(tokens) if t[0] == train_split]
+    if not test:
+      raise ValueError(f"no test views in {sparse_dir}: RobustNeRF names "
+                       "found but no image name contains 'extra'; add clean "
+                       "held-out 'extra' views.")
+    if not train:
+      raise ValueError(f"no training views in {sparse_dir}: no image name "
+                       f"contains {train_split!r}; pick another train_split.")
+    return train, test
+  test = list(range(0, len(names), TEST_EVERY))
+  train = [i for i in range(len(names)) if i % TEST_EVERY]
+  if not train:
+    raise ValueError(f"no training views in {sparse_dir}: only {len(names)} "
+                     f"registered image(s), every {TEST_EVERY}th is held out "
+                     "for testing; register more images.")
+  return train, test
+
+
+def _mask_path(scene_path: str, name: str) -> str:
+  stem = os.path.splitext(name)[0]
+  return os.path.join(scene_path, "masks", stem + ".png")
+
+
+def _load_views(model: colmap.Model, idx, scene_path: str, downscale: int,
+                cache_dir: str, with_masks: bool) -> Views:
+  """Reads the images (and masks) of the views `idx` of `model`."""
+  prescaled_dir = None
+  if downscale > 1 and not model.undistorted:
+    # RobustNeRF-style pre-scaled copies; for distorted scenes they are
+    # distorted too, so the undistorted images are resized instead.
+    prescaled_dir = os.path.join(scene_path, f"images_{downscale}")
+    if not os.path.isdir(prescaled_dir):
+      prescaled_dir = None
+  resize_cache = os.path.join(cache_dir, f"images_{downscale}")
+  imgs, cams, first = [], [], None
+  for i in idx:
+    name = model.names[i]
+    src = os.path.join(model.image_dir, name)
+    size = tuple(int(s) for s in model.sizes[i])
+    prescaled = None
+    if prescaled_dir is not None:
+      prescaled = os.path.join(prescaled_dir, name)
+      if not os.path.isfile(prescaled):
+        raise FileNotFoundError(
+            f"{prescaled} is missing although {prescaled_dir} exists; add "
+            "it, or delete the folder to resize from images/.")
+    image = images.load_image(src, factor=downscale, expected_size=size,
+                              cache_dir=resize_cache,
+                              prescaled_path=prescaled)
+    h, w = image.shape[:2]
+    if first is None:
+      first = (name, w, h)
+    elif (w, h) != first[1:]:
+      raise ValueError(
+          f"{src} gives a {w}x{h} image but {first[0]} gives "
+          f"{first[1]}x{first[2]}; all views of a split must share one size "
+          "(use one COLMAP camera size).")
+    # Pixel centres at +0.5 in both grids make continuous image coordinates
+    # scale uniformly, so fx, cx (fy, cy) scale by new_W / W (new_H / H).
+    sx, sy = w / size[0], h / size[1]
+    fx, fy, cx, cy = model.intrinsics[i]
+    cams.append(camera.Camera.create(
+        model.rotations[i], model.translations[i], fx * sx, fy * sy,
+        cx * sx, cy * sy, w, h))
+    imgs.append(image)
+  names = tuple(model.names[i] for i in idx)
+  masks = _load_masks(scene_path, names, downscale, resize_cache,
+                      imgs[0].shape[:2]) if with_masks else None
+  stacked = camera.Camera(
+      rotation=np.stack([c.rotation for c in cams]),
+      translation=np.stack([c.translation for c in cams]),
+      fx=np.stack([c.fx for c in cams]), fy=np.stack([c.fy for c in cams]),
+      cx=np.stack([c.cx for c in cams]), cy=np.stack([c.cy for c in cams]),
+      width=first[1], height=first[2])
+  return Views(cameras=stacked, images=np.stack(imgs), names=names,
+               masks=masks)
+
+
+def _load_masks(scene_path, names, downscale, resize_cache, shape):
+  """bool [V, H, W], or None if `masks/` has none of these views' masks."""
+  paths = [_mask_path(scene_path, n) for n in names]
+  present = [os.path.isfile(p) for p in paths]
+  if not any(present):
+    return None
+  if not all(present):
+    missing = paths[present.index(False)]
+    raise FileNotFoundError(
+        f"mask {missing} is missing although other training views have "
+        "masks; add it (white = transient) or remove the masks/ folder.")
+  masks = []
+  for path in paths:
+    grey = images.load_image(path, factor=downscale,
+                             cache_dir=resize_cache).mean(axis=-1)
+    if grey.shape != tuple(shape):
+      raise ValueError(f"mask {path} gives {grey.shape[1]}x{grey.shape[0]} "
+                       f"pixels at downscale {downscale}, its image "
+                       f"{shape[1]}x{shape[0]}; make it the image's size.")
+    masks.append(grey >= MASK_THRESHOLD)
+  return np.stack(masks)
+
+
+def _extent(cameras: camera.Camera) -> float:
+  centres = -np.einsum("vji,vj->vi", cameras.rotation, cameras.translation)
+  radius = np.linalg.norm(centres - centres.mean(axis=0), axis=-1).max()
+  # One camera (or coincident ones) has no spread; use unit scale instead
+  # of scaling every learning rate to zero.
+  return float(EXTENT_MARGIN * (radius if radius > 1e-8 else 1.0))
+
+
+def load_scene(path: str, downscale: int = 1, train_split: str = "clutter",
+               cache_dir: str | None = None) -> Scene:
+  """Loads a COLMAP scene with its train/test split.
+
+  Splits: with RobustNeRF names (`clutter`, `extra`, `clean` in the image
+  names) the test views are `extra` and the training views are
+  `train_split` (`clutter`, or `clean` for the clean upper bound); otherwise
+  every 8th image by sorted name (0, 8, 16, ...) is a test view and
+  `train_split` is ignored. Masks are read from `masks/<stem>.png` (white =
+  transient) for the training views when present.
+
+  Args:
+    path: str, scene folder with `images/` and `sparse/0/`.
+    downscale: int, image downscale factor K (uses `images_K/` if present).
+    train_split: str, "clutter" or "clean" (RobustNeRF scenes only).
+    cache_dir: str or None, writable folder for undistorted and resized
+      images; default `colmap.default_cache_dir(path)`.
+
+  Returns:
+    A `Scene`.
+  """
+  images.downscaled_size(1, 1, downscale)      # validates the factor
+  cache_dir = cache_dir or colmap.default_cache_dir(path)
+  model = colmap.load_model(path, cache_dir=cache_dir)
+  train_idx, test_idx = _split_names(model.names, train_split,
+                                     model.sparse_dir)
+  train = _load_views(model, train_idx, path, downscale, cache_dir,
+                      with_masks=True)
+  test = _load_views(model, test_idx, path, downscale, cache_dir,
+                     with_masks=False)
+  return Scene(train=train, test=test, points=model.points,
+               point_colors=model.point_colors.astype(np.float32) / 255,
+               extent=_extent(train.cameras), path=path)
