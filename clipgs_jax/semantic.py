@@ -1,0 +1,119 @@
+"""CLIP-GS semantic guidance as pure functions (DESIGN.md, paper eqs. 5-13).
+
+Per training step: score the rendered view (eqs. 5-7), accumulate the score
+into the Gaussians that contributed to it (eqs. 8-9), normalise by view count
+(eq. 10), penalise opacity by the normalised score (eqs. 11-12) and prune
+(eq. 13). Statistics live in `densify.SemanticStats` so that densification
+and pruning move them with the parameters.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from clipgs_jax import densify
+
+# s_hat = (cos + 1) / 2 maps cosine similarity to [0, 1]; 0.5 (cos = 0) is
+# the neutral point below which a view adds no distractor evidence.
+NEUTRAL_SCORE = 0.5
+
+
+def normalized_max_cosine(image_embedding: jax.Array,
+                          prompt_embeddings: jax.Array) -> jax.Array:
+  """(max_p cos(f_I, f_p) + 1) / 2 (eqs. 5-7) for L2-normalised inputs.
+
+  Args:
+    image_embedding: float [D], the rendered view's normalised CLIP feature.
+    prompt_embeddings: float [P, D], normalised text features, P >= 1.
+  Returns:
+    float [], the normalised score in [0, 1].
+  """
+  if prompt_embeddings.shape[0] == 0:
+    raise ValueError("normalized_max_cosine needs at least one prompt.")
+  cos = prompt_embeddings @ image_embedding                       # [P]
+  return (jnp.max(cos) + 1.0) / 2.0
+
+
+def _check_score(score) -> None:
+  """Host-side check of a concrete score (skipped under jit)."""
+  if isinstance(score, jax.core.Tracer):
+    return
+  value = np.asarray(score)
+  if not np.all(np.isfinite(value)) or np.any(value < 0) or np.any(value > 1):
+    raise ValueError(f"s_hat_d must be a finite score in [0, 1], got {value}.")
+
+
+def accumulate(stats: densify.SemanticStats, visible: jax.Array,
+               s_hat_d: jax.Array, beta: float) -> densify.SemanticStats:
+  """Eqs. 8-9: visible Gaussians gain beta * max(0, s_hat_d - 0.5) and a view.
+
+  Args:
+    stats: per-row acc and n, float [C].
+    visible: bool [C], the rasterizer's per-Gaussian visibility (a non-zero
+      blending weight on some pixel); dead slots are never visible.
+    s_hat_d: float [], the view's normalised distractor score.
+    beta: accumulation rate (paper: 0.1).
+  Returns:
+    The updated statistics. A non-finite score (possible only under jit,
+    where it cannot raise) leaves the statistics unchanged.
+  """
+  _check_score(s_hat_d)
+  ok = jnp.isfinite(s_hat_d)
+  gain = beta * jnp.maximum(0.0, jnp.where(ok, s_hat_d, 0.0) - NEUTRAL_SCORE)
+  v = (visible & ok).astype(stats.acc.dtype)
+  return stats.replace(acc=stats.acc + gain * v, n=stats.n + v)
+
+
+def normalized_scores(stats: densify.SemanticStats) -> jax.Array:
+  """Eq. 10: s_j = acc_j / n_j, and 0 where n_j = 0."""
+  seen = stats.n > 0
+  return jnp.where(seen, stats.acc / jnp.where(seen, stats.n, 1.0), 0.0)
+
+
+def opacity_loss(stats: densify.SemanticStats, opacity_logits: jax.Array,
+                 alive: jax.Array, weight: float) -> jax.Array:
+  """Eqs. 11-12: lambda_c * mean over alive j of stop_grad(s_j) * alpha_j."""
+  s = jax.lax.stop_gradient(normalized_scores(stats))
+  alpha = jax.nn.sigmoid(opacity_logits)
+  count = jnp.maximum(jnp.sum(alive), 1)
+  return weight * jnp.sum(jnp.where(alive, s * alpha, 0.0)) / count
+
+
+def prune_masks(stats: densify.SemanticStats, opacity_logits: jax.Array,
+                alive: jax.Array, *, tau: float, n_min: float,
+                alpha_min: float) -> tuple[jax.Array, jax.Array]:
+  """Eq. 13, split by condition so each can be counted.
+
+  Returns:
+    semantic: bool [C], alive and s_j > tau.
+    visibility: bool [C], alive, not semantic, n_j < n_min and
+      alpha_j < alpha_min. Prune `semantic | visibility`.
+  """
+  semantic = alive & (normalized_scores(stats) > tau)
+  alpha = jax.nn.sigmoid(opacity_logits)
+  visibility = alive & ~semantic & (stats.n < n_min) & (alpha < alpha_min)
+  return semantic, visibility
+
+
+def oracle_score(mask: jax.Array, saturation: float) -> jax.Array:
+  """The s_hat_d a perfect image-level detector gives a view (benchmarks).
+
+  The score rises linearly with the transient area fraction f of the view,
+  s_hat_d = 0.5 + 0.5 min(1, f / saturation): exactly neutral (0.5) for a
+  clean view, and fully confident (1.0) once `saturation` of the image is
+  transient. Reads the ground-truth mask, so it is labelled "oracle"
+  wherever it is used.
+
+  Args:
+    mask: bool [H, W], the view's ground-truth transient mask.
+    saturation: area fraction in (0, 1] at which the score reaches 1.
+  """
+  if not 0 < saturation <= 1:
+    raise ValueError(f"oracle saturation must be in (0, 1], got {saturation}.")
+  f = jnp.mean(mask.astype(jnp.float32))
+  return NEUTRAL_SCORE + NEUTRAL_SCORE * jnp.minimum(1.0, f / saturation)
+
+
+def state_bytes(stats: densify.SemanticStats) -> int:
+  """Bytes of the per-slot semantic arrays (two float32 per slot)."""
+  return int(sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(stats)))

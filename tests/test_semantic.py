@@ -1,0 +1,121 @@
+"""Semantic guidance equations on hand-computed examples."""
+
+from absl.testing import parameterized
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from clipgs_jax import densify
+from clipgs_jax import semantic
+
+
+def _stats(acc, n):
+  return densify.SemanticStats(acc=jnp.asarray(acc, jnp.float32),
+                               n=jnp.asarray(n, jnp.float32))
+
+
+class ScoreTest(parameterized.TestCase):
+
+  def test_view_score(self):
+    image = jnp.array([1.0, 0.0, 0.0])
+    prompts = jnp.array([[0.6, 0.8, 0.0], [-1.0, 0.0, 0.0], [0.2, 0.0, 0.98]])
+    # cosines 0.6, -1.0, 0.2 -> max 0.6 -> (0.6 + 1) / 2 = 0.8
+    self.assertAlmostEqual(
+        float(semantic.normalized_max_cosine(image, prompts)), 0.8, places=6)
+    # Opposite vectors: cos = -1 -> 0.
+    self.assertAlmostEqual(float(semantic.normalized_max_cosine(
+        image, -image[None])), 0.0, places=6)
+
+  def test_view_score_needs_prompts(self):
+    with self.assertRaisesRegex(ValueError, "at least one prompt"):
+      semantic.normalized_max_cosine(jnp.ones(3), jnp.zeros((0, 3)))
+
+
+class AccumulateTest(parameterized.TestCase):
+
+  def test_hand_computed(self):
+    stats = _stats([0.0, 0.01, 0.0], [0.0, 2.0, 5.0])
+    visible = jnp.array([True, True, False])
+    out = semantic.accumulate(stats, visible, jnp.float32(0.7), beta=0.1)
+    # gain = 0.1 * (0.7 - 0.5) = 0.02 for visible rows only.
+    np.testing.assert_allclose(out.acc, [0.02, 0.03, 0.0], rtol=1e-6)
+    np.testing.assert_allclose(out.n, [1.0, 3.0, 5.0])
+
+  @parameterized.named_parameters(("zero", 0.0, 0.0), ("neutral", 0.5, 0.0),
+                                  ("one", 1.0, 0.05))
+  def test_extreme_scores(self, score, gain):
+    out = semantic.accumulate(_stats([0.0], [0.0]), jnp.array([True]),
+                              jnp.float32(score), beta=0.1)
+    # Below 0.5 adds nothing but still counts the view.
+    np.testing.assert_allclose(out.acc, [gain], rtol=1e-6)
+    np.testing.assert_allclose(out.n, [1.0])
+
+  @parameterized.named_parameters(("nan", np.nan), ("above_one", 1.5),
+                                  ("negative", -0.1))
+  def test_bad_score_rejected(self, score):
+    with self.assertRaisesRegex(ValueError, "s_hat_d must be"):
+      semantic.accumulate(_stats([0.0], [0.0]), jnp.array([True]),
+                          jnp.float32(score), beta=0.1)
+
+  def test_nan_under_jit_leaves_stats(self):
+    f = jax.jit(lambda s: semantic.accumulate(
+        _stats([0.1], [2.0]), jnp.array([True]), s, beta=0.1))
+    out = f(jnp.float32(np.nan))
+    np.testing.assert_allclose(out.acc, [0.1])
+    np.testing.assert_allclose(out.n, [2.0])
+
+
+class NormalizeLossPruneTest(parameterized.TestCase):
+
+  def test_n_zero_guard(self):
+    s = semantic.normalized_scores(_stats([0.0, 0.03, 0.5], [0.0, 2.0, 0.0]))
+    # acc / n = 0.015 where n > 0; 0 where n = 0 (no NaN from 0 / 0).
+    np.testing.assert_allclose(s, [0.0, 0.015, 0.0], rtol=1e-6)
+
+  def test_opacity_loss(self):
+    stats = _stats([0.02, 0.04, 1.0], [1.0, 2.0, 1.0])
+    logits = jnp.array([0.0, 0.0, 0.0])            # alpha = 0.5 each
+    alive = jnp.array([True, True, False])
+    loss = semantic.opacity_loss(stats, logits, alive, weight=0.01)
+    # s = [0.02, 0.02, dead]; mean over alive of s * 0.5 = 0.01; * 0.01.
+    self.assertAlmostEqual(float(loss), 1e-4, places=9)
+    # Gradient flows to opacities only, through alpha' = 0.25.
+    g = jax.grad(lambda l: semantic.opacity_loss(stats, l, alive, 0.01))(
+        logits)
+    np.testing.assert_allclose(g, [0.01 * 0.02 * 0.25 / 2] * 2 + [0.0],
+                               rtol=1e-5)
+
+  def test_prune_hand_computed(self):
+    stats = _stats([0.04, 0.0, 0.0, 0.04, 0.0], [2.0, 3.0, 20.0, 2.0, 3.0])
+    alpha = jnp.array([0.9, 0.05, 0.05, 0.9, 0.5])
+    logits = jnp.log(alpha / (1 - alpha))
+    alive = jnp.array([True, True, True, False, True])
+    sem, vis = semantic.prune_masks(stats, logits, alive, tau=0.015,
+                                    n_min=10, alpha_min=0.1)
+    # row 0: s = 0.02 > tau; row 1: few views and faint; row 2: faint but
+    # seen 20 times; row 3: dead; row 4: few views but opaque.
+    np.testing.assert_array_equal(sem, [True, False, False, False, False])
+    np.testing.assert_array_equal(vis, [False, True, False, False, False])
+
+  @parameterized.named_parameters(("tau_zero", 0.0, [True, True, False]),
+                                  ("tau_one", 1.0, [False, False, False]))
+  def test_tau_limits(self, tau, expected):
+    stats = _stats([1e-6, 0.5, 0.0], [1.0, 1.0, 1.0])
+    sem, _ = semantic.prune_masks(stats, jnp.zeros(3), jnp.ones(3, bool),
+                                  tau=tau, n_min=0, alpha_min=0.0)
+    np.testing.assert_array_equal(sem, expected)
+
+  def test_oracle_score(self):
+    mask = jnp.zeros((10, 10), bool)
+    self.assertEqual(float(semantic.oracle_score(mask, 0.1)), 0.5)
+    # 5 % transient with saturation 10 % -> 0.5 + 0.5 * 0.5 = 0.75.
+    self.assertAlmostEqual(float(semantic.oracle_score(
+        mask.at[:5, 0].set(True), 0.1)), 0.75, places=6)
+    self.assertEqual(float(semantic.oracle_score(mask.at[:].set(True), 0.1)),
+                     1.0)
+    with self.assertRaisesRegex(ValueError, "saturation"):
+      semantic.oracle_score(mask, 0.0)
+
+  def test_two_float32_per_slot(self):
+    self.assertEqual(semantic.state_bytes(densify.SemanticStats.zeros(1000)),
+                     8000)
