@@ -31,11 +31,14 @@ _VARIANTS = flags.DEFINE_list("variants", ["custom_vjp", "autodiff"],
                               "custom_vjp and/or autodiff.")
 _RADIUS = flags.DEFINE_list("radius_px", ["2", "20"],
                             "Range of projected 3-sigma radii, pixels.")
-_TILE_BUDGET = flags.DEFINE_integer("tile_budget", 4096, "K.")
+_TILE_BUDGET = flags.DEFINE_integer(
+    "tile_budget", 0, "K; 0 = the smallest power of two >= the scene's "
+    "longest tile list (what BUILD_NOTES recommends), same for both variants.")
 _CHUNK = flags.DEFINE_integer("chunk_size", 32, "B.")
 _REPEATS = flags.DEFINE_integer("repeats", 5, "Timed runs (median).")
-_AUTODIFF_MAX_N = flags.DEFINE_integer(
-    "autodiff_max_n", 100000, "Skip autodiff above this N (memory).")
+_MAX_BYTES = flags.DEFINE_float(
+    "max_gib", 12.0, "Do not run a variant whose compiled forward+backward "
+    "needs more memory than this (GiB); its estimate is still printed.")
 
 
 def make_scene(n, width, height, r_lo, r_hi, seed=0):
@@ -80,11 +83,20 @@ def _peak_bytes(fn, *args):
              + mem.output_size_in_bytes)
 
 
+def _budget(params, alive, cam):
+  """Smallest power of two >= the longest tile list of this scene."""
+  probe = config.RenderConfig(tile_budget=1 << 15, chunk_size=_CHUNK.value)
+  proj = project.project(params, alive, cam, near=probe.near, sh_degree=0)
+  longest = int(rasterize.rasterize(proj, cam, jnp.zeros(3),
+                                    probe).max_tile_count)
+  return max(_CHUNK.value, 1 << max(longest - 1, 1).bit_length())
+
+
 def bench(n, width, height, variant):
   r_lo, r_hi = (float(r) for r in _RADIUS.value)
   params, alive, cam = make_scene(n, width, height, r_lo, r_hi)
-  cfg = config.RenderConfig(tile_budget=_TILE_BUDGET.value,
-                            chunk_size=_CHUNK.value)
+  budget = _TILE_BUDGET.value or _budget(params, alive, cam)
+  cfg = config.RenderConfig(tile_budget=budget, chunk_size=_CHUNK.value)
   bg = jnp.zeros(3)
   custom = variant == "custom_vjp"
 
@@ -97,17 +109,23 @@ def bench(n, width, height, variant):
 
   fwd = jax.jit(lambda p: forward(p).image)
   grad = jax.jit(jax.grad(loss))
+  result = dict(n=n, width=width, height=height, variant=variant,
+                tile_budget=budget, chunk_size=cfg.chunk_size,
+                backend=jax.default_backend())
+  peak = _peak_bytes(grad, params)
+  result["peak_bytes_fwd_bwd"] = peak
+  if peak is not None and peak > _MAX_BYTES.value * 2**30:
+    result["skipped"] = f"needs {peak / 2**30:.1f} GiB > --max_gib"
+    return result
   out = jax.jit(forward)(params)
   fwd_ms = _time(fwd, params)
   fb_ms = _time(grad, params)
-  return dict(
-      n=n, width=width, height=height, variant=variant,
+  result.update(
       forward_ms=round(fwd_ms, 1), forward_backward_ms=round(fb_ms, 1),
       backward_over_forward=round((fb_ms - fwd_ms) / fwd_ms, 2),
-      peak_bytes_fwd_bwd=_peak_bytes(grad, params),
       num_overflow=int(out.num_overflow),
-      max_tile_count=int(out.max_tile_count),
-      backend=jax.default_backend())
+      max_tile_count=int(out.max_tile_count))
+  return result
 
 
 def main(argv):
@@ -116,8 +134,6 @@ def main(argv):
     width, height = (int(s) for s in size.split("x"))
     for n in (int(float(x)) for x in _NUM.value):
       for variant in _VARIANTS.value:
-        if variant == "autodiff" and n > _AUTODIFF_MAX_N.value:
-          continue
         print(json.dumps(bench(n, width, height, variant)), flush=True)
 
 
