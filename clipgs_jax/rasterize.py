@@ -100,6 +100,11 @@ def _untile(x: jax.Array, grid: _Grid) -> jax.Array:
   return x[:grid.height, :grid.width]
 
 
+def _cumsum(x: jax.Array) -> jax.Array:
+  """Inclusive 1D prefix sum; jnp.cumsum is 6x slower on XLA:CPU (1M ints)."""
+  return jax.lax.associative_scan(jnp.add, x)
+
+
 def _bin(proj: project_lib.Projected, grid: _Grid):
   """Depth-sorted per-tile lists as one sorted array plus tile ranges.
 
@@ -141,7 +146,7 @@ def _bin(proj: project_lib.Projected, grid: _Grid):
   order = jnp.argsort(jnp.where(proj.valid, proj.depths, jnp.inf),
                       stable=True).astype(jnp.int32)
   counts = n_tiles[order]
-  ends = jnp.cumsum(counts)
+  ends = _cumsum(counts)
   starts = ends - counts
   total = ends[-1]
 
@@ -151,7 +156,7 @@ def _bin(proj: project_lib.Projected, grid: _Grid):
     # the last rank whose start is <= m (zero-count ranks share the start
     # of the next rank, so they are never the last).
     marks = jnp.zeros(size, jnp.int32).at[starts].add(1, mode="drop")
-    owner = jnp.clip(jnp.cumsum(marks) - 1, 0, n - 1)             # [size]
+    owner = jnp.clip(_cumsum(marks) - 1, 0, n - 1)                # [size]
     m = jnp.arange(size, dtype=jnp.int32)
     local = m - starts[owner]
     g = order[owner]
@@ -163,11 +168,12 @@ def _bin(proj: project_lib.Projected, grid: _Grid):
     key = jnp.sort(key)        # one int key: 8x cheaper than a keyed sort
     return jnp.concatenate([key, jnp.full(capacity - size, _NO_KEY)])
 
-  # Sorting costs O(buffer), so pick the smallest power-of-two buffer that
-  # holds this view's intersections (lax.switch runs only that branch).
+  # Sorting costs O(buffer), so pick the smallest of a geometric ladder of
+  # buffers that holds this view's intersections (lax.switch runs only that
+  # branch); ratio 2/3 wastes at most a third of a sort.
   sizes = [capacity]
-  while sizes[-1] // 2 >= _MIN_SORT_BUFFER:
-    sizes.append(sizes[-1] // 2)
+  while sizes[-1] * 2 // 3 >= _MIN_SORT_BUFFER:
+    sizes.append(sizes[-1] * 2 // 3)
   branch = jnp.maximum(jnp.sum(jnp.array(sizes) >= total) - 1, 0)
   key = jax.lax.switch(branch, [functools.partial(sorted_keys, sz)
                                 for sz in sizes])
