@@ -20,3 +20,128 @@ class RenderConfig:
   near: float = 0.2            # near plane in scene units; closer is culled
   tile_budget: int = 2048      # K: max depth-sorted Gaussians per tile
   chunk_size: int = 32         # B: list entries blended per step per tile
+
+
+@dataclasses.dataclass(frozen=True)
+class GaussiansConfig:
+  """Capacity and initialisation of the Gaussian set."""
+  capacity: int = 0            # initial slots C; 0 = auto: 2x init points, pow2
+  min_capacity: int = 4096     # floor of the automatic capacity
+  max_capacity: int = 1 << 20  # densification doubles C up to this, then stops
+  sh_degree: int = 3           # highest SH degree stored and reached
+  init_opacity: float = 0.1    # opacity of every initial Gaussian (3DGS)
+  init_min_scale: float = 1e-4  # floor of the kNN scale, in scene units
+  init_neighbors: int = 3      # scale = mean distance to this many neighbours
+  random_init_points: int = 10_000  # used only when the scene has no points
+
+
+@dataclasses.dataclass(frozen=True)
+class OptimConfig:
+  """Adam per parameter field; 3DGS learning rates."""
+  means_lr_init: float = 1.6e-4   # x scene extent, at step 0
+  means_lr_final: float = 1.6e-6  # x scene extent, at the end of the decay
+  means_lr_steps: int = 0      # log-linear decay length; 0 = train.steps
+  sh_dc_lr: float = 2.5e-3     # degree-0 SH coefficients
+  sh_rest_lr: float = 2.5e-3 / 20  # higher SH bands: 20x lower than DC
+  opacity_lr: float = 0.05     # on opacity logits
+  log_scales_lr: float = 5e-3  # on log standard deviations
+  quats_lr: float = 1e-3       # on raw quaternions
+  adam_b1: float = 0.9         # Adam first-moment decay
+  adam_b2: float = 0.999       # Adam second-moment decay
+  adam_eps: float = 1e-15      # 3DGS value; tiny so small grads still move
+
+
+@dataclasses.dataclass(frozen=True)
+class DensifyConfig:
+  """Adaptive density control (3DGS defaults); steps count finished steps."""
+  start: int = 500             # first densification after this many steps
+  stop: int = 15_000           # densify/prune/reset only while step < stop
+  every: int = 100             # densification cadence in steps
+  grad_threshold: float = 2e-4  # mean |d loss / d NDC xy| over visible views
+  percent_dense: float = 0.01  # x extent: clone at or below, split above
+  split_scale: float = 1.6     # a split child has scale / this (2 children)
+  min_opacity: float = 0.005   # prune below this opacity
+  max_world_size: float = 0.1  # x extent: prune larger (after first reset)
+  max_screen_size: float = 20.0  # pixels: prune larger radius (after reset)
+  opacity_reset_every: int = 3000  # 0 = never; opacity -> min(op, reset_to)
+  opacity_reset_to: float = 0.01  # opacity after a reset
+  sh_degree_every: int = 1000  # raise the active SH degree this often
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+  """The training loop."""
+  steps: int = 30_000          # optimisation steps (3DGS: 30k)
+  seed: int = 0                # PRNG seed (views, backgrounds, splits)
+  lambda_dssim: float = 0.2    # loss = (1 - l) L1 + l (1 - SSIM)
+  random_background: bool = False  # a random colour behind splats per step
+  background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # else this RGB
+  log_every: int = 100         # host fetches metrics, checks finiteness
+  eval_every: int = 1000       # test PSNR for the curve; 0 = only at the end
+  checkpoint_every: int = 5000  # 0 = only at the end
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+  """Everything a run needs; `scene_extent` is filled in from the scene."""
+  gaussians: GaussiansConfig = GaussiansConfig()  # capacity, initialisation
+  optim: OptimConfig = OptimConfig()      # learning rates
+  densify: DensifyConfig = DensifyConfig()  # adaptive density control
+  train: TrainConfig = TrainConfig()      # loop, loss, logging
+  render: RenderConfig = RenderConfig()   # rasterizer settings
+  scene_extent: float = 0.0    # camera-centre radius x 1.1; 0 = from scene
+
+
+PRESETS = ("default", "smoke")
+
+
+def preset(name: str) -> Config:
+  """Named configurations.
+
+  "default": the 3DGS paper values above (30k steps).
+  "smoke": a small capacity (2x the points, at most 16k) and 60 steps that
+  run densification (with capacity growth), pruning, the SH raise,
+  evaluation and checkpoints; for CI.
+  """
+  if name == "default":
+    return Config()
+  if name == "smoke":
+    return Config(
+        gaussians=GaussiansConfig(capacity=0, min_capacity=256,
+                                  max_capacity=16384, sh_degree=1,
+                                  random_init_points=500),
+        # Densify at 20 and 30, SH degree 1 from 20. No opacity reset: it
+        # needs thousands of steps to recover from (tests/test_densify.py
+        # and tests/test_train.py cover it), and a CI run should show the
+        # test PSNR rising.
+        densify=DensifyConfig(start=10, stop=35, every=10,
+                              opacity_reset_every=0, sh_degree_every=20),
+        train=TrainConfig(steps=60, log_every=10, eval_every=20,
+                          checkpoint_every=30))
+  raise ValueError(f"config.preset: unknown preset {name!r}; choose one of "
+                   f"{', '.join(PRESETS)}.")
+
+
+def to_dict(cfg: Config) -> dict:
+  """JSON-ready nested dict of a config."""
+  return dataclasses.asdict(cfg)
+
+
+def from_dict(d: dict) -> Config:
+  """Inverse of `to_dict`; unknown keys raise (no silent typos)."""
+  def build(cls, values):
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = set(values) - set(fields)
+    if unknown:
+      raise ValueError(f"config: unknown {cls.__name__} keys "
+                       f"{sorted(unknown)}.")
+    kwargs = {}
+    for name, value in values.items():
+      default = getattr(cls(), name)
+      if dataclasses.is_dataclass(default):
+        value = build(type(default), value)
+      elif isinstance(default, tuple):
+        value = tuple(value)
+      kwargs[name] = value
+    return cls(**kwargs)
+  return build(Config, d)

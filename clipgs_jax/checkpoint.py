@@ -1,0 +1,157 @@
+"""TrainState checkpoints as flat '/'-keyed .npz files, written atomically.
+
+Layout: every leaf of the state under "state/<path>" (e.g.
+"state/params/means", "state/opt_state/inner_states/means/inner_state/0/mu/
+means"); the PRNG key as its raw key data; "meta/config" (the resolved
+config as JSON), "meta/extra" (JSON: the loop's curve and timers) and
+"meta/version". No pickles: the file loads with allow_pickle=False.
+"""
+
+import json
+import os
+import tempfile
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from clipgs_jax import config as config_lib
+from clipgs_jax import densify
+
+VERSION = 1
+_PREFIX = "state/"
+
+
+def _key_name(entry) -> str:
+  for attr in ("name", "key", "idx"):
+    if hasattr(entry, attr):
+      return str(getattr(entry, attr))
+  raise TypeError(f"checkpoint: unsupported pytree path entry {entry!r}.")
+
+
+def _is_prng_key(x) -> bool:
+  return isinstance(x, jax.Array) and jnp.issubdtype(x.dtype,
+                                                      jax.dtypes.prng_key)
+
+
+def flatten(tree) -> dict[str, Any]:
+  """{'/'-joined path: leaf} of a pytree."""
+  leaves = jax.tree_util.tree_flatten_with_path(tree)[0]
+  return {"/".join(_key_name(e) for e in path): leaf for path, leaf in leaves}
+
+
+def atomic_write(path: str, write_fn, suffix: str = "") -> None:
+  """Calls write_fn(tmp_path) and renames the result onto `path`.
+
+  The temporary file lives in the same directory (so os.replace is an
+  atomic rename) and keeps `suffix`, for writers that pick a format from
+  the extension. A reader never sees a partial file.
+  """
+  directory = os.path.dirname(os.path.abspath(path))
+  os.makedirs(directory, exist_ok=True)
+  fd, tmp = tempfile.mkstemp(dir=directory, suffix=".tmp" + suffix,
+                             prefix="." + os.path.basename(path) + ".")
+  os.close(fd)
+  try:
+    write_fn(tmp)
+    # mkstemp creates the file 0600; give it the usual umask-based mode.
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)
+    os.replace(tmp, path)
+  except BaseException:
+    if os.path.exists(tmp):
+      os.remove(tmp)
+    raise
+
+
+def write_json(path: str, obj) -> None:
+  """Atomic JSON write."""
+  def write(tmp):
+    with open(tmp, "w") as f:
+      json.dump(obj, f, indent=2, sort_keys=True)
+      f.write("\n")
+  atomic_write(path, write, ".json")
+
+
+def save(path: str, state, cfg: config_lib.Config,
+         extra: dict | None = None) -> None:
+  """Writes `state` (a TrainState), the config and `extra` to `path`."""
+  arrays = {}
+  for name, leaf in flatten(jax.device_get(state)).items():
+    if _is_prng_key(leaf):
+      leaf = jax.random.key_data(leaf)
+    arrays[_PREFIX + name] = np.asarray(leaf)
+  arrays["meta/config"] = np.asarray(json.dumps(config_lib.to_dict(cfg)))
+  arrays["meta/extra"] = np.asarray(json.dumps(extra or {}))
+  arrays["meta/version"] = np.asarray(VERSION, np.int32)
+
+  def write(tmp):
+    with open(tmp, "wb") as f:
+      np.savez(f, **arrays)
+      f.flush()
+      os.fsync(f.fileno())
+  atomic_write(path, write, ".npz")
+
+
+def read_meta(path: str) -> dict[str, Any]:
+  """{"config": dict, "extra": dict, "version": int} of a checkpoint."""
+  with np.load(path, allow_pickle=False) as data:
+    return _meta(data, path)
+
+
+def _meta(data, path) -> dict[str, Any]:
+  for key in ("meta/config", "meta/extra", "meta/version"):
+    if key not in data:
+      raise ValueError(f"checkpoint: {path} has no {key}; it is not a "
+                       "clipgs_jax checkpoint.")
+  return {"config": json.loads(str(data["meta/config"])),
+          "extra": json.loads(str(data["meta/extra"])),
+          "version": int(data["meta/version"])}
+
+
+def restore(path: str, template) -> tuple[Any, dict[str, Any]]:
+  """Loads a checkpoint into the structure of `template` (a TrainState).
+
+  The template gives the pytree structure; a template of another capacity
+  is resized first (densify.resize), since capacity grows during training.
+  Every leaf must be present with the template's dtype and shape.
+
+  Returns:
+    (state, meta) with meta as in `read_meta`.
+  """
+  if not os.path.exists(path):
+    raise FileNotFoundError(f"checkpoint.restore: {path} does not exist.")
+  with np.load(path, allow_pickle=False) as data:
+    meta = _meta(data, path)
+    if meta["version"] != VERSION:
+      raise ValueError(f"checkpoint: {path} has format version "
+                       f"{meta['version']}, this code reads {VERSION}.")
+    capacity = data[_PREFIX + "alive"].shape[0]
+    if template.alive.shape[0] != capacity:
+      template = densify.resize(template, capacity)
+    names = flatten(template)
+    missing = [n for n in names if _PREFIX + n not in data]
+    if missing:
+      raise ValueError(f"checkpoint: {path} lacks {missing[:3]}; it was "
+                       "written for a different config or code version.")
+    leaves = []
+    for name, like in names.items():
+      value = data[_PREFIX + name]
+      if _is_prng_key(like):
+        expected = jax.random.key_data(like)
+        if value.shape != expected.shape or value.dtype != expected.dtype:
+          raise ValueError(f"checkpoint: {path} key data has shape "
+                           f"{value.shape}, expected {expected.shape}.")
+        leaves.append(jax.random.wrap_key_data(
+            value, impl=jax.random.key_impl(like)))
+        continue
+      like_dtype = jnp.result_type(like)
+      if value.shape != np.shape(like) or value.dtype != like_dtype:
+        raise ValueError(f"checkpoint: {path} entry {name} is {value.dtype} "
+                         f"{value.shape}, expected {like_dtype} "
+                         f"{np.shape(like)}.")
+      leaves.append(jnp.asarray(value))
+  state = jax.tree.unflatten(jax.tree.structure(template), leaves)
+  return state, meta

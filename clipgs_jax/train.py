@@ -1,0 +1,468 @@
+"""Training state, the pure train step, test-set evaluation and the host loop."""
+
+import dataclasses
+import functools
+import logging
+import math
+import os
+import time
+from typing import Any
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from clipgs_jax import camera as camera_lib
+from clipgs_jax import checkpoint
+from clipgs_jax import config as config_lib
+from clipgs_jax import densify
+from clipgs_jax import gaussians
+from clipgs_jax import initialize
+from clipgs_jax import losses
+from clipgs_jax import metrics as metrics_lib
+from clipgs_jax import optim
+from clipgs_jax import project
+from clipgs_jax import rasterize
+from clipgs_jax.data import scene as scene_lib
+
+_log = logging.getLogger(__name__)
+
+# fold_in tags that give each use of the run's key its own stream.
+_VIEW_STREAM = 1
+_BACKGROUND_STREAM = 2
+_DENSIFY_STREAM = 3
+
+CHECKPOINT_NAME = "checkpoint.npz"
+
+
+@flax.struct.dataclass
+class TrainState:
+  """Everything that changes during training.
+
+  Attributes:
+    params: GaussianParams with capacity C.
+    alive: bool [C], slots in use.
+    opt_state: optax state of `optim.make` (per-field Adam).
+    densify: DensifyStats, per row, since the last densification.
+    semantic: SemanticStats, per row, CLIP-GS distractor statistics.
+    step: int32 [], finished optimisation steps.
+    key: PRNG key of the run; constant, per-step keys come from fold_in.
+  """
+  params: gaussians.GaussianParams
+  alive: jax.Array
+  opt_state: Any
+  densify: densify.DensifyStats
+  semantic: densify.SemanticStats
+  step: jax.Array
+  key: jax.Array
+
+  @property
+  def capacity(self) -> int:
+    return self.alive.shape[0]
+
+
+@flax.struct.dataclass
+class Batch:
+  """All training views, on device for the whole run.
+
+  Attributes:
+    images: float32 [V, H, W, 3] in [0, 1].
+    cameras: Camera whose array fields are stacked along a leading [V].
+  """
+  images: jax.Array
+  cameras: camera_lib.Camera
+
+
+def make_batch(views) -> Batch:
+  """Device-resident Batch from a data.scene.Views (or any object with
+  `images` [V, H, W, 3] and stacked `cameras`)."""
+  images = np.asarray(views.images, np.float32)
+  if images.ndim != 4 or images.shape[-1] != 3 or images.shape[0] == 0:
+    raise ValueError(f"train.make_batch: views.images must be [V, H, W, 3] "
+                     f"with V > 0, got {images.shape}.")
+  cams = views.cameras
+  if (cams.width, cams.height) != (images.shape[2], images.shape[1]):
+    raise ValueError(f"train.make_batch: cameras are {cams.width}x"
+                     f"{cams.height} but images are {images.shape[2]}x"
+                     f"{images.shape[1]}.")
+  cams = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), cams)
+  return Batch(images=jnp.asarray(images), cameras=cams)
+
+
+def make_optimizer(cfg: config_lib.Config) -> optax.GradientTransformation:
+  return optim.make(cfg.optim, cfg.scene_extent, cfg.train.steps)
+
+
+def init_state(cfg: config_lib.Config, params: gaussians.GaussianParams,
+               alive) -> TrainState:
+  """Step-0 state: zero moments and statistics, the run's key from seed."""
+  if not cfg.scene_extent > 0:
+    raise ValueError("train.init_state: cfg.scene_extent must be positive; "
+                     "call train.resolve(cfg, scene) first.")
+  alive = jnp.asarray(alive, bool)
+  gaussians.validate(params, alive)
+  params = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), params)
+  capacity = alive.shape[0]
+  return TrainState(
+      params=params, alive=alive,
+      opt_state=make_optimizer(cfg).init(params),
+      densify=densify.DensifyStats.zeros(capacity),
+      semantic=densify.SemanticStats.zeros(capacity),
+      step=jnp.zeros((), jnp.int32),
+      key=jax.random.key(cfg.train.seed))
+
+
+def view_index(key: jax.Array, step: jax.Array, num_views: int
+               ) -> jax.Array:
+  """int32 [], the training view of `step`.
+
+  Views are visited in a fresh random permutation each epoch (epoch =
+  step // V), as the reference 3DGS loop does; the permutation is a pure
+  function of (key, epoch), so a resumed run sees the same views.
+  """
+  epoch_key = jax.random.fold_in(jax.random.fold_in(key, _VIEW_STREAM),
+                                 step // num_views)
+  return jax.random.permutation(epoch_key, num_views)[step % num_views]
+
+
+def background(key: jax.Array, step: jax.Array, cfg: config_lib.Config
+               ) -> jax.Array:
+  """float [3]: a uniform random colour per step, or the fixed background."""
+  if cfg.train.random_background:
+    k = jax.random.fold_in(jax.random.fold_in(key, _BACKGROUND_STREAM), step)
+    return jax.random.uniform(k, (3,), jnp.float32)
+  return jnp.asarray(cfg.train.background, jnp.float32)
+
+
+def train_step(state: TrainState, batch: Batch, *, cfg: config_lib.Config
+               ) -> tuple[TrainState, dict[str, jax.Array]]:
+  """One optimisation step on one training view.
+
+  Renders the view (project + rasterize, with a zero offset on the splat
+  centres whose gradient is the screen-space positional gradient), takes
+  the 3DGS loss (1 - l) L1 + l (1 - SSIM), applies Adam, and accumulates
+  the densification statistics.
+  """
+  num_views, height, width = batch.images.shape[:3]
+  step = state.step
+  view = view_index(state.key, step, num_views)
+  cam = scene_lib.camera_at(batch.cameras, view)
+  target = batch.images[view]
+  bg = background(state.key, step, cfg)
+  degree = densify.sh_degree(step, cfg)
+
+  def loss_fn(params, offset):
+    proj = project.project(params, state.alive, cam, near=cfg.render.near,
+                           sh_degree=degree)
+    proj = proj.replace(means2d=proj.means2d + offset)
+    out = rasterize.rasterize(proj, cam, bg, cfg.render)
+    loss, terms = losses.photometric(out.image, target,
+                                     cfg.train.lambda_dssim)
+    return loss, (out, proj, terms)
+
+  offset = jnp.zeros((state.capacity, 2), state.params.means.dtype)
+  (loss, (out, proj, terms)), (grads, grad2d) = jax.value_and_grad(
+      loss_fn, argnums=(0, 1), has_aux=True)(state.params, offset)
+  # Dead rows get no gradient from the render; the mask makes it explicit.
+  grads = jax.tree.map(
+      lambda g: jnp.where(
+          state.alive.reshape((-1,) + (1,) * (g.ndim - 1)), g, 0.0), grads)
+  tx = make_optimizer(cfg)
+  updates, opt_state = tx.update(grads, state.opt_state, state.params)
+  params = optax.apply_updates(state.params, updates)
+
+  proj = jax.lax.stop_gradient(proj)
+  seen = densify.on_screen(proj, width, height) & state.alive
+  stats = densify.accumulate(state.densify, grad2d, seen,
+                             densify.screen_radius(proj), width, height)
+  metrics = {
+      "loss": loss, "l1": terms["l1"], "ssim": terms["ssim"],
+      "psnr": metrics_lib.psnr(out.image, target),
+      "num_alive": jnp.sum(state.alive, dtype=jnp.int32),
+      "num_overflow": out.num_overflow,
+      "max_tile_count": out.max_tile_count,
+      "sh_degree": degree,
+      "means_lr": optim.means_lr(step, cfg.optim, cfg.scene_extent,
+                                 cfg.train.steps),
+  }
+  for field in optim.FIELDS:
+    metrics[f"grad_norm/{field}"] = optax.tree.norm(getattr(grads, field))
+  new_state = state.replace(params=params, opt_state=opt_state,
+                            densify=stats, step=step + 1)
+  return new_state, metrics
+
+
+@functools.lru_cache(maxsize=None)
+def make_train_step(cfg: config_lib.Config):
+  """Jitted train_step(state, batch) -> (state, metrics); state is donated.
+
+  Cached per config, so every caller with the same config shares one
+  compiled step (it recompiles only when the capacity changes).
+  """
+  return jax.jit(functools.partial(train_step, cfg=cfg), donate_argnums=(0,))
+
+
+# ----------------------------------------------------------------------------
+# Evaluation.
+
+
+@functools.lru_cache(maxsize=None)
+def _render_fn(render_cfg: config_lib.RenderConfig):
+  def fn(params, alive, cam, bg, degree):
+    out = rasterize.render(params, alive, cam, bg, render_cfg, degree)
+    return jnp.clip(out.image, 0.0, 1.0)
+  return jax.jit(fn)
+
+
+@functools.lru_cache(maxsize=None)
+def _metrics_fn(lpips_net: str | None):
+  if lpips_net is None:
+    return jax.jit(lambda a, b: metrics_lib.image_metrics(a, b, None))
+  # LPIPS has its own jit; the rest is cheap.
+  return functools.partial(metrics_lib.image_metrics, lpips_net=lpips_net)
+
+
+def evaluate(params: gaussians.GaussianParams, alive, views,
+             cfg: config_lib.Config, *, lpips_net: str | None = None,
+             psnr_only: bool = False, keep_images: bool = False
+             ) -> dict[str, Any]:
+  """Renders every view of `views` and scores it against its image.
+
+  All SH bands are used and the background is cfg.train.background.
+  Renders are clipped to [0, 1] before scoring.
+
+  Returns:
+    dict with per-image lists "psnr" (and "ssim", "lpips" unless
+    psnr_only), their means "mean/<name>", and "images" (float32
+    [V, H, W, 3] numpy) when keep_images.
+  """
+  render = _render_fn(cfg.render)
+  bg = jnp.asarray(cfg.train.background, jnp.float32)
+  degree = jnp.asarray(params.sh_degree, jnp.int32)
+  cams = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), views.cameras)
+  num = len(views.images)
+  per_image: dict[str, list[float]] = {"psnr": []}
+  if not psnr_only:
+    per_image["ssim"] = []
+    if lpips_net is not None:
+      per_image["lpips"] = []
+  images = []
+  for i in range(num):
+    pred = render(params, alive, scene_lib.camera_at(cams, i), bg, degree)
+    target = jnp.asarray(views.images[i], jnp.float32)
+    if psnr_only:
+      values = {"psnr": metrics_lib.psnr(pred, target)}
+    else:
+      values = _metrics_fn(lpips_net)(pred[None], target[None])
+    for name in per_image:
+      per_image[name].append(float(np.asarray(values[name]).reshape(())))
+    if keep_images:
+      images.append(np.asarray(pred))
+  result: dict[str, Any] = dict(per_image)
+  for name, vals in per_image.items():
+    result[f"mean/{name}"] = float(np.mean(vals)) if vals else float("nan")
+  if keep_images:
+    result["images"] = (np.stack(images) if images else
+                        np.zeros((0, cams.height, cams.width, 3), np.float32))
+  return result
+
+
+# ----------------------------------------------------------------------------
+# Host loop.
+
+
+def resolve(cfg: config_lib.Config, scene) -> config_lib.Config:
+  """Fills the scene-dependent config fields (scene_extent) from `scene`."""
+  if cfg.scene_extent > 0:
+    return cfg
+  extent = float(scene.extent)
+  if not extent > 0 or not math.isfinite(extent):
+    raise ValueError(f"train.resolve: scene extent {extent} is not positive; "
+                     "the scene needs at least two distinct cameras, or set "
+                     "Config.scene_extent.")
+  return dataclasses.replace(cfg, scene_extent=extent)
+
+
+def initial_state(cfg: config_lib.Config, scene) -> TrainState:
+  """Step-0 state from the scene's points (random points if it has none)."""
+  cams = scene.train.cameras
+  centers = -np.einsum("vji,vj->vi", np.asarray(cams.rotation, np.float64),
+                       np.asarray(cams.translation, np.float64))
+  points = getattr(scene, "points", None)
+  params, alive = initialize.initialize(
+      points, getattr(scene, "point_colors", None), centers, cfg.gaussians,
+      seed=cfg.train.seed)
+  return init_state(cfg, params, alive)
+
+
+@dataclasses.dataclass
+class FitResult:
+  """What `fit` returns.
+
+  Attributes:
+    state: the final TrainState.
+    cfg: the resolved config the run used.
+    curve: list of {step, seconds, test_psnr}.
+    train_seconds: wall time of the training loop, compilation included,
+      evaluation and checkpoint writing excluded.
+    log: the metrics fetched at each logging step (host floats), with the
+      counts of the most recent densify (num_cloned, num_split,
+      num_pruned, num_unplaced) once one has run.
+  """
+  state: TrainState
+  cfg: config_lib.Config
+  curve: list[dict[str, float]]
+  train_seconds: float
+  log: list[dict[str, float]]
+
+
+def _check_finite(step: int, values: dict[str, float]) -> None:
+  bad = [k for k, v in values.items() if not math.isfinite(v)]
+  if bad:
+    raise FloatingPointError(
+        f"train: non-finite {', '.join(bad)} at step {step}; lower the "
+        "learning rates or check the input images and cameras.")
+
+
+def _grow_if_needed(state: TrainState, cfg: config_lib.Config
+                    ) -> TrainState:
+  """Host-side: doubles C (up to max_capacity) when the next densify asks
+  for more clones/splits than there are free slots."""
+  requested, free = (int(x) for x in jax.device_get(
+      densify.make_count_requests(cfg)(state)))
+  capacity = state.capacity
+  if requested <= free or capacity >= cfg.gaussians.max_capacity:
+    return state
+  new = capacity
+  while new - (capacity - free) < requested and new < cfg.gaussians.max_capacity:
+    new = min(2 * new, cfg.gaussians.max_capacity)
+  _log.info("step %d: capacity %d -> %d (%d requests, %d free); the train "
+            "step recompiles once", int(state.step), capacity, new,
+            requested, free)
+  return densify.resize(state, new)
+
+
+def fit(cfg: config_lib.Config, scene, workdir: str, *, resume: bool = False,
+        progress: bool = True, stop_after: int | None = None) -> FitResult:
+  """Trains on scene.train, tracking test PSNR on scene.test.
+
+  Each step runs the jitted train step; after the steps that `densify.due`
+  names it runs the jitted densify (growing the capacity first, on the
+  host, if free slots would run out) and the opacity reset. The host waits
+  for the device only every log_every steps (metrics, non-finite check),
+  before each densify (two counts that decide on capacity growth),
+  at evaluations (every eval_every steps and at the end; the time they
+  take is excluded from the curve's seconds) and at checkpoints
+  (workdir/checkpoint.npz, every checkpoint_every steps and at the end).
+
+  Args:
+    cfg: the config; scene-dependent fields are resolved from `scene`.
+    scene: a data.scene.Scene (train/test Views, points, extent).
+    workdir: where the checkpoint goes (created if missing).
+    resume: continue from workdir/checkpoint.npz if it exists; the result
+      is bit-identical to an uninterrupted run.
+    progress: show a tqdm progress bar.
+    stop_after: stop once this many steps are done, with a checkpoint, as
+      a preemption would (a later resume=True call finishes the run).
+  """
+  cfg = resolve(cfg, scene)
+  os.makedirs(workdir, exist_ok=True)
+  ckpt_path = os.path.join(workdir, CHECKPOINT_NAME)
+  batch = make_batch(scene.train)
+  state = initial_state(cfg, scene)
+  curve: list[dict[str, float]] = []
+  train_seconds = 0.0
+  if resume and os.path.exists(ckpt_path):
+    state, meta = checkpoint.restore(ckpt_path, state)
+    saved = config_lib.from_dict(meta["config"])
+    if saved != cfg:
+      raise ValueError(f"train.fit: {ckpt_path} was written with a different "
+                       "config; resume with the same flags or a new workdir.")
+    curve = list(meta["extra"].get("curve", []))
+    train_seconds = float(meta["extra"].get("train_seconds", 0.0))
+    _log.info("resumed from %s at step %d", ckpt_path, int(state.step))
+  elif resume:
+    _log.info("no checkpoint at %s; starting from step 0", ckpt_path)
+
+  step_fn = make_train_step(cfg)
+  densify_fn = densify.make_densify(cfg)
+  reset_fn = densify.make_reset_opacity(cfg)
+  densify_key = jax.random.fold_in(state.key, _DENSIFY_STREAM)
+  total = cfg.train.steps
+  end = total if stop_after is None else min(total, stop_after)
+  start = int(state.step)
+  log: list[dict[str, float]] = []
+
+  def eval_point(step: int) -> None:
+    result = evaluate(state.params, state.alive, scene.test, cfg,
+                      psnr_only=True)
+    curve.append({"step": step, "seconds": train_seconds,
+                  "test_psnr": result["mean/psnr"]})
+    _log.info("step %d: test PSNR %.3f after %.1f s of training, %d alive",
+              step, result["mean/psnr"], train_seconds,
+              int(jnp.sum(state.alive)))
+
+  def save() -> None:
+    checkpoint.save(ckpt_path, state, cfg,
+                    extra={"curve": curve, "train_seconds": train_seconds})
+
+  has_test = len(scene.test.images) > 0
+  if start == 0 and has_test and cfg.train.eval_every:
+    eval_point(0)
+  bar = None
+  if progress:
+    import tqdm  # pylint: disable=g-import-not-at-top
+    bar = tqdm.tqdm(total=total, initial=start, dynamic_ncols=True,
+                    mininterval=1.0)
+  tic = time.perf_counter()
+  last_metrics, last_info = None, None
+  try:
+    for step in range(start + 1, end + 1):   # `step` = steps done after
+      state, last_metrics = step_fn(state, batch)
+      do_densify, do_reset = densify.due(step, cfg)
+      if do_densify:
+        state = _grow_if_needed(state, cfg)
+        state, last_info = densify_fn(
+            state, jax.random.fold_in(densify_key, step))
+      if do_reset:
+        state = reset_fn(state)
+      if bar is not None:
+        bar.update(1)
+      if step == end or (cfg.train.log_every
+                         and step % cfg.train.log_every == 0):
+        values = {k: float(v) for k, v in
+                  jax.device_get(last_metrics).items()}
+        if last_info is not None:
+          values.update({k: float(v) for k, v in
+                         jax.device_get(last_info).items()})
+        _check_finite(step, values)
+        values["step"] = step
+        log.append(values)
+        if bar is not None:
+          bar.set_postfix(loss=f"{values['loss']:.4f}",
+                          psnr=f"{values['psnr']:.2f}",
+                          n=int(values["num_alive"]), refresh=False)
+      evaluate_now = has_test and (
+          step == total or (cfg.train.eval_every
+                            and step % cfg.train.eval_every == 0))
+      checkpoint_now = step == end or (
+          cfg.train.checkpoint_every
+          and step % cfg.train.checkpoint_every == 0)
+      if evaluate_now or checkpoint_now:
+        jax.block_until_ready(state)
+        train_seconds += time.perf_counter() - tic
+        if evaluate_now:
+          eval_point(step)
+        if checkpoint_now:
+          save()
+        tic = time.perf_counter()
+  finally:
+    if bar is not None:
+      bar.close()
+  jax.block_until_ready(state)
+  if start >= total:
+    _log.info("checkpoint is already at step %d >= %d steps", start, total)
+  return FitResult(state=state, cfg=cfg, curve=curve,
+                   train_seconds=train_seconds, log=log)
