@@ -438,6 +438,13 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, resume: bool = False,
           values.update({k: float(v) for k, v in
                          jax.device_get(last_info).items()})
         _check_finite(step, values)
+        if values.get("num_overflow", 0) > 0:
+          # Inexact render: some tile held more Gaussians than the budget.
+          _log.warning(
+              "step %d: %d tile-list entries dropped (longest tile list %d "
+              "> render.tile_budget %d); raise RenderConfig.tile_budget",
+              step, int(values["num_overflow"]),
+              int(values["max_tile_count"]), cfg.render.tile_budget)
         values["step"] = step
         log.append(values)
         if bar is not None:
