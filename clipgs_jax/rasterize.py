@@ -216,7 +216,7 @@ def _alpha(pix, mean, conic, opacity):
   return alpha, raw, gauss, dx, dy, keep
 
 
-def _forward_init(grid, splats, pix, pix_inside):
+def _forward_init(splats, pix, pix_inside):
   t, p = pix.shape[:2]
   dtype = splats[0].dtype
   return (jnp.int32(0), jnp.ones((t, p), dtype), jnp.zeros((t, p, 3), dtype),
@@ -273,7 +273,7 @@ def _blend_forward(grid, splats, tables, pix, pix_inside):
   body = functools.partial(_forward_round, grid, splats, tables, pix,
                            pix_inside)
   carry = jax.lax.while_loop(
-      cond, body, _forward_init(grid, splats, pix, pix_inside))
+      cond, body, _forward_init(splats, pix, pix_inside))
   _, trans, color, depth, n_contrib, _, contrib = carry
   return color, depth, trans, n_contrib, contrib
 
@@ -289,7 +289,7 @@ def blend_autodiff(grid, splats, tables, pix, pix_inside):
   body = functools.partial(_forward_round, grid, splats, tables, pix,
                            pix_inside)
   carry = jax.lax.scan(lambda c, _: (body(c), None),
-                       _forward_init(grid, splats, pix, pix_inside), None,
+                       _forward_init(splats, pix, pix_inside), None,
                        length=grid.num_rounds)[0]
   _, trans, color, depth, _, _, contrib = carry
   return color, depth, trans, contrib
