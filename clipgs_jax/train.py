@@ -350,7 +350,9 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, resume: bool = False,
 
   Each step runs the jitted train step; after the steps that `densify.due`
   names it runs the jitted densify (growing the capacity first, on the
-  host, if free slots would run out) and the opacity reset. The host waits
+  host, if free slots would run out) and the opacity reset. A test
+  evaluation at step N sees the model before step N's densify/reset; a
+  checkpoint at step N is written after them. The host waits
   for the device only every log_every steps (metrics, non-finite check),
   before each densify (two counts that decide on capacity growth),
   at evaluations (every eval_every steps and at the end; the time they
@@ -421,6 +423,16 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, resume: bool = False,
   try:
     for step in range(start + 1, end + 1):   # `step` = steps done after
       state, last_metrics = step_fn(state, batch)
+      if bar is not None:
+        bar.update(1)
+      # Evaluate the result of the optimisation steps, before this step's
+      # housekeeping (as 3DGS reports); a densify would show a transient.
+      if has_test and (step == total or (
+          cfg.train.eval_every and step % cfg.train.eval_every == 0)):
+        jax.block_until_ready(state)
+        train_seconds += time.perf_counter() - tic
+        eval_point(step)
+        tic = time.perf_counter()
       do_densify, do_reset = densify.due(step, cfg)
       if do_densify:
         state = _grow_if_needed(state, cfg)
@@ -428,8 +440,6 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, resume: bool = False,
             state, jax.random.fold_in(densify_key, step))
       if do_reset:
         state = reset_fn(state)
-      if bar is not None:
-        bar.update(1)
       if step == end or (cfg.train.log_every
                          and step % cfg.train.log_every == 0):
         values = {k: float(v) for k, v in
@@ -451,19 +461,12 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, resume: bool = False,
           bar.set_postfix(loss=f"{values['loss']:.4f}",
                           psnr=f"{values['psnr']:.2f}",
                           n=int(values["num_alive"]), refresh=False)
-      evaluate_now = has_test and (
-          step == total or (cfg.train.eval_every
-                            and step % cfg.train.eval_every == 0))
-      checkpoint_now = step == end or (
-          cfg.train.checkpoint_every
-          and step % cfg.train.checkpoint_every == 0)
-      if evaluate_now or checkpoint_now:
+      # Checkpoint after the housekeeping, so a resume continues exactly.
+      if step == end or (cfg.train.checkpoint_every
+                         and step % cfg.train.checkpoint_every == 0):
         jax.block_until_ready(state)
         train_seconds += time.perf_counter() - tic
-        if evaluate_now:
-          eval_point(step)
-        if checkpoint_now:
-          save()
+        save()
         tic = time.perf_counter()
   finally:
     if bar is not None:

@@ -3,6 +3,7 @@
   python experiments/train.py --workdir=DIR [--scene=DIR] [--downscale=K]
       [--steps=N] [--seed=S] [--preset=default|smoke] [--resume]
       [--random_background] [--lpips_net=alex|vgg] [--curve_points=20]
+      [--tile_budget=K]
 
 Without --scene, the embedded default scene
 (data.default_scene.ensure_default_scene()) is used, with
@@ -75,6 +76,9 @@ _LPIPS_NET = flags.DEFINE_enum("lpips_net", "alex", ["alex", "vgg"],
 _CURVE_POINTS = flags.DEFINE_integer(
     "curve_points", 20, "Test-PSNR evaluations along the run for curve.json "
     "(0: the preset's eval_every).")
+_TILE_BUDGET = flags.DEFINE_integer(
+    "tile_budget", None, "RenderConfig.tile_budget (default: the preset's); "
+    "raise it when the log warns that tile-list entries were dropped.")
 _TRAIN_SPLIT = flags.DEFINE_enum(
     "train_split", "clutter", list(scene_lib.TRAIN_SPLITS),
     "RobustNeRF scenes: train on clutter views or on the clean twins.")
@@ -98,7 +102,14 @@ def config_from_flags(embedded: bool) -> config_lib.Config:
     t = dataclasses.replace(t, random_background=True)
   if _CURVE_POINTS.value > 0:
     t = dataclasses.replace(t, eval_every=max(1, t.steps // _CURVE_POINTS.value))
-  return dataclasses.replace(cfg, train=t)
+  cfg = dataclasses.replace(cfg, train=t)
+  if _TILE_BUDGET.value is not None:
+    if _TILE_BUDGET.value <= 0:
+      raise app.UsageError(f"--tile_budget must be positive, got "
+                           f"{_TILE_BUDGET.value}.")
+    cfg = dataclasses.replace(cfg, render=dataclasses.replace(
+        cfg.render, tile_budget=_TILE_BUDGET.value))
+  return cfg
 
 
 def main(argv):
