@@ -224,7 +224,7 @@ def _forward_init(splats, pix, pix_inside):
           jnp.zeros((splats[0].shape[0],), dtype))
 
 
-def _forward_round(grid, splats, tables, pix, pix_inside, carry):
+def _forward_round(grid, splats, tables, pix, carry):
   """Blends list entries [r*B, (r+1)*B) of every tile into the carry.
 
   The B entries are walked one at a time on [T, P] arrays, which stay in
@@ -248,8 +248,8 @@ def _forward_round(grid, splats, tables, pix, pix_inside, carry):
     n_contrib = n_contrib + include
     # Out of list or below the transmittance floor: this pixel is finished.
     done = done | ~include
-    per_entry = per_entry.at[:, b].set(
-        jnp.sum(jnp.where(pix_inside, w, 0.0), axis=1))
+    # Pixels outside the image start `done`, so their w is already 0.
+    per_entry = per_entry.at[:, b].set(jnp.sum(w, axis=1))
     return trans, color, depth, n_contrib, done, per_entry
 
   state = (trans, color, depth, n_contrib, done,
@@ -270,8 +270,7 @@ def _blend_forward(grid, splats, tables, pix, pix_inside):
     active = (r * grid.chunk_size < count) & ~jnp.all(done, axis=1)
     return (r < grid.num_rounds) & jnp.any(active)
 
-  body = functools.partial(_forward_round, grid, splats, tables, pix,
-                           pix_inside)
+  body = functools.partial(_forward_round, grid, splats, tables, pix)
   carry = jax.lax.while_loop(
       cond, body, _forward_init(splats, pix, pix_inside))
   _, trans, color, depth, n_contrib, _, contrib = carry
@@ -286,8 +285,7 @@ def blend_autodiff(grid, splats, tables, pix, pix_inside):
   to measure what the custom VJP saves (bench_rasterizer.py) and as a second
   gradient check; training never uses it.
   """
-  body = functools.partial(_forward_round, grid, splats, tables, pix,
-                           pix_inside)
+  body = functools.partial(_forward_round, grid, splats, tables, pix)
   carry = jax.lax.scan(lambda c, _: (body(c), None),
                        _forward_init(splats, pix, pix_inside), None,
                        length=grid.num_rounds)[0]
