@@ -1,7 +1,6 @@
 """Initial Gaussians from a sparse point cloud (or random points), packed
 into a fixed capacity with an alive mask."""
 
-import jax.numpy as jnp
 import numpy as np
 
 from clipgs_jax import config as config_lib
