@@ -81,6 +81,62 @@ class TrainConfig:
   checkpoint_every: int = 5000  # 0 = only at the end
 
 
+# The paper's prompt sets (DESIGN.md): distractors D and static scene S.
+PAPER_DISTRACTOR_PROMPTS = ("a photo of a person", "a photo of people",
+                            "a photo of pedestrians", "a photo of hands",
+                            "a photo of a balloon")
+PAPER_STATIC_PROMPTS = ("a photo of a building", "a photo of a wall",
+                        "a photo of furniture")
+# The paper's run length; `SemanticConfig.scaled_to` scales its schedule.
+PAPER_STEPS = 20_000
+SCORERS = ("off", "clip", "oracle")
+WEIGHTINGS = ("visibility", "contribution")
+
+
+@dataclasses.dataclass(frozen=True)
+class SemanticConfig:
+  """CLIP-GS semantic guidance (paper defaults; DESIGN.md steps 1-8).
+
+  Steps count finished steps, as in DensifyConfig. The step that starts at
+  `step` scores its view when step >= accumulate_start and
+  (step - accumulate_start) % score_every == 0, adds the opacity loss when
+  step >= reg_start, and after `step` finished steps the host loop prunes
+  when step >= prune_start and (step - prune_start) % prune_every == 0.
+  """
+  scorer: str = "off"          # off | clip | oracle (benchmarks: reads masks)
+  distractor_prompts: tuple[str, ...] = PAPER_DISTRACTOR_PROMPTS  # D
+  static_prompts: tuple[str, ...] = PAPER_STATIC_PROMPTS  # S, logged only
+  beta: float = 0.1            # accumulation rate (eq. 8)
+  lambda_c: float = 0.01       # CLIP opacity loss weight (eq. 11)
+  tau: float = 0.015           # prune when s_j > tau (eq. 13)
+  n_min: float = 10.0          # ... or n_j < n_min and alpha_j < alpha_min;
+  alpha_min: float = 0.1       #     n_min is divided by score_every
+  accumulate_start: int = 500  # first scored step
+  reg_start: int = 2000        # first step with the opacity loss
+  prune_start: int = 5000      # first prune after this many steps
+  prune_every: int = 1000      # prune cadence
+  score_every: int = 1         # score every k-th step (paper: 1)
+  weighting: str = "visibility"  # paper: a visible Gaussian gains the view's
+  #   score once; "contribution": weighted by its blending-weight sum in the
+  #   view (n_j then counts pixel weight, not views; see semantic.accumulate)
+  clip_variant: str = "ViT-B/32"  # frozen tower; 224x224 resized input
+  oracle_saturation: float = 0.1  # transient area fraction that scores 1.0
+
+  @property
+  def enabled(self) -> bool:
+    """Guidance runs: a scorer is chosen and there are distractor prompts."""
+    return self.scorer != "off" and len(self.distractor_prompts) > 0
+
+  def scaled_to(self, steps: int) -> "SemanticConfig":
+    """The schedule scaled from the paper's 20k steps to `steps`."""
+    f = steps / PAPER_STEPS
+    scale = lambda x: max(1, round(x * f))
+    return dataclasses.replace(
+        self, accumulate_start=scale(self.accumulate_start),
+        reg_start=scale(self.reg_start), prune_start=scale(self.prune_start),
+        prune_every=scale(self.prune_every))
+
+
 @dataclasses.dataclass(frozen=True)
 class Config:
   """Everything a run needs; `scene_extent` is filled in from the scene."""
@@ -89,6 +145,7 @@ class Config:
   densify: DensifyConfig = DensifyConfig()  # adaptive density control
   train: TrainConfig = TrainConfig()      # loop, loss, logging
   render: RenderConfig = RenderConfig()   # rasterizer settings
+  semantic: SemanticConfig = SemanticConfig()  # CLIP-GS guidance (off)
   scene_extent: float = 0.0    # camera-centre radius x 1.1; 0 = from scene
 
 

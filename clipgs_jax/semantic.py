@@ -43,14 +43,21 @@ def _check_score(score) -> None:
     raise ValueError(f"s_hat_d must be a finite score in [0, 1], got {value}.")
 
 
-def accumulate(stats: densify.SemanticStats, visible: jax.Array,
+def accumulate(stats: densify.SemanticStats, weight: jax.Array,
                s_hat_d: jax.Array, beta: float) -> densify.SemanticStats:
-  """Eqs. 8-9: visible Gaussians gain beta * max(0, s_hat_d - 0.5) and a view.
+  """Eqs. 8-9: acc += weight * beta * max(0, s_hat_d - 0.5), n += weight.
+
+  With the paper's weight, the visibility v_j (bool), every visible Gaussian
+  gains the view's score once and counts one view, and s_j = acc / n is the
+  mean score of the views that saw it. A float weight (the Gaussian's
+  blending-weight sum in the view, SemanticConfig.weighting =
+  "contribution") makes s_j the contribution-weighted mean instead.
 
   Args:
     stats: per-row acc and n, float [C].
-    visible: bool [C], the rasterizer's per-Gaussian visibility (a non-zero
-      blending weight on some pixel); dead slots are never visible.
+    weight: bool or float [C] >= 0; the rasterizer's per-Gaussian visibility
+      (a non-zero blending weight on some pixel) or contribution; dead
+      slots have none.
     s_hat_d: float [], the view's normalised distractor score.
     beta: accumulation rate (paper: 0.1).
   Returns:
@@ -60,8 +67,8 @@ def accumulate(stats: densify.SemanticStats, visible: jax.Array,
   _check_score(s_hat_d)
   ok = jnp.isfinite(s_hat_d)
   gain = beta * jnp.maximum(0.0, jnp.where(ok, s_hat_d, 0.0) - NEUTRAL_SCORE)
-  v = (visible & ok).astype(stats.acc.dtype)
-  return stats.replace(acc=stats.acc + gain * v, n=stats.n + v)
+  w = jnp.where(ok, weight.astype(stats.acc.dtype), 0.0)
+  return stats.replace(acc=stats.acc + gain * w, n=stats.n + w)
 
 
 def normalized_scores(stats: densify.SemanticStats) -> jax.Array:

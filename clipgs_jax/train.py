@@ -18,7 +18,9 @@ from clipgs_jax import camera as camera_lib
 from clipgs_jax import checkpoint
 from clipgs_jax import config as config_lib
 from clipgs_jax import densify
+from clipgs_jax import evaluation
 from clipgs_jax import gaussians
+from clipgs_jax import guidance
 from clipgs_jax import initialize
 from clipgs_jax import losses
 from clipgs_jax import metrics as metrics_lib
@@ -136,15 +138,29 @@ def background(key: jax.Array, step: jax.Array, cfg: config_lib.Config
   return jnp.asarray(cfg.train.background, jnp.float32)
 
 
-def train_step(state: TrainState, batch: Batch, *, cfg: config_lib.Config
+def train_step(state: TrainState, batch: Batch, scorer=None, *,
+               cfg: config_lib.Config
                ) -> tuple[TrainState, dict[str, jax.Array]]:
   """One optimisation step on one training view.
 
   Renders the view (project + rasterize, with a zero offset on the splat
   centres whose gradient is the screen-space positional gradient), takes
   the 3DGS loss (1 - l) L1 + l (1 - SSIM), applies Adam, and accumulates
-  the densification statistics.
+  the densification statistics. With a scorer (semantic guidance on) the
+  loss gains the CLIP opacity term from reg_start, and the same render is
+  scored and accumulated into state.semantic when due; without one the
+  step is exactly the vanilla 3DGS step.
+
+  Args:
+    state: the TrainState (donated by make_train_step).
+    batch: all training views.
+    scorer: None, or a guidance scorer (frozen; never differentiated).
+    cfg: the config (static).
   """
+  if (scorer is not None) != cfg.semantic.enabled:
+    raise ValueError(f"train_step: semantic scorer {cfg.semantic.scorer!r} "
+                     f"{'needs' if cfg.semantic.enabled else 'takes no'} "
+                     "scorer argument (see guidance.make_scorer).")
   num_views, height, width = batch.images.shape[:3]
   step = state.step
   view = view_index(state.key, step, num_views)
@@ -160,6 +176,11 @@ def train_step(state: TrainState, batch: Batch, *, cfg: config_lib.Config
     out = rasterize.rasterize(proj, cam, bg, cfg.render)
     loss, terms = losses.photometric(out.image, target,
                                      cfg.train.lambda_dssim)
+    if scorer is not None:
+      terms["semantic_loss"] = guidance.opacity_regularizer(
+          state.semantic, params.opacity_logits, state.alive, step,
+          cfg.semantic)
+      loss = loss + terms["semantic_loss"]
     return loss, (out, proj, terms)
 
   offset = jnp.zeros((state.capacity, 2), state.params.means.dtype)
@@ -189,84 +210,30 @@ def train_step(state: TrainState, batch: Batch, *, cfg: config_lib.Config
   }
   for field in optim.FIELDS:
     metrics[f"grad_norm/{field}"] = optax.tree.norm(getattr(grads, field))
+  semantic_stats = state.semantic
+  if scorer is not None:
+    metrics["semantic_loss"] = terms["semantic_loss"]
+    weight = (out.visible if cfg.semantic.weighting == "visibility"
+              else out.contribution)
+    semantic_stats, scores = guidance.score_and_accumulate(
+        state.semantic, out.image, weight, view, step, scorer, cfg.semantic)
+    metrics.update(scores, view=view)
   new_state = state.replace(params=params, opt_state=opt_state,
-                            densify=stats, step=step + 1)
+                            densify=stats, semantic=semantic_stats,
+                            step=step + 1)
   return new_state, metrics
 
 
 @functools.lru_cache(maxsize=None)
 def make_train_step(cfg: config_lib.Config):
-  """Jitted train_step(state, batch) -> (state, metrics); state is donated.
+  """Jitted train_step(state, batch, scorer=None) -> (state, metrics).
+
+  The state is donated; the scorer (frozen CLIP weights or masks) is not.
 
   Cached per config, so every caller with the same config shares one
   compiled step (it recompiles only when the capacity changes).
   """
   return jax.jit(functools.partial(train_step, cfg=cfg), donate_argnums=(0,))
-
-
-# ----------------------------------------------------------------------------
-# Evaluation.
-
-
-@functools.lru_cache(maxsize=None)
-def _render_fn(render_cfg: config_lib.RenderConfig):
-  def fn(params, alive, cam, bg, degree):
-    out = rasterize.render(params, alive, cam, bg, render_cfg, degree)
-    return jnp.clip(out.image, 0.0, 1.0)
-  return jax.jit(fn)
-
-
-@functools.lru_cache(maxsize=None)
-def _metrics_fn(lpips_net: str | None):
-  if lpips_net is None:
-    return jax.jit(lambda a, b: metrics_lib.image_metrics(a, b, None))
-  # LPIPS has its own jit; the rest is cheap.
-  return functools.partial(metrics_lib.image_metrics, lpips_net=lpips_net)
-
-
-def evaluate(params: gaussians.GaussianParams, alive, views,
-             cfg: config_lib.Config, *, lpips_net: str | None = None,
-             psnr_only: bool = False, keep_images: bool = False
-             ) -> dict[str, Any]:
-  """Renders every view of `views` and scores it against its image.
-
-  All SH bands are used and the background is cfg.train.background.
-  Renders are clipped to [0, 1] before scoring.
-
-  Returns:
-    dict with per-image lists "psnr" (and "ssim", "lpips" unless
-    psnr_only), their means "mean/<name>", and "images" (float32
-    [V, H, W, 3] numpy) when keep_images.
-  """
-  render = _render_fn(cfg.render)
-  bg = jnp.asarray(cfg.train.background, jnp.float32)
-  degree = jnp.asarray(params.sh_degree, jnp.int32)
-  cams = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), views.cameras)
-  num = len(views.images)
-  per_image: dict[str, list[float]] = {"psnr": []}
-  if not psnr_only:
-    per_image["ssim"] = []
-    if lpips_net is not None:
-      per_image["lpips"] = []
-  images = []
-  for i in range(num):
-    pred = render(params, alive, scene_lib.camera_at(cams, i), bg, degree)
-    target = jnp.asarray(views.images[i], jnp.float32)
-    if psnr_only:
-      values = {"psnr": metrics_lib.psnr(pred, target)}
-    else:
-      values = _metrics_fn(lpips_net)(pred[None], target[None])
-    for name in per_image:
-      per_image[name].append(float(np.asarray(values[name]).reshape(())))
-    if keep_images:
-      images.append(np.asarray(pred))
-  result: dict[str, Any] = dict(per_image)
-  for name, vals in per_image.items():
-    result[f"mean/{name}"] = float(np.mean(vals)) if vals else float("nan")
-  if keep_images:
-    result["images"] = (np.stack(images) if images else
-                        np.zeros((0, cams.height, cams.width, 3), np.float32))
-  return result
 
 
 # ----------------------------------------------------------------------------
@@ -310,12 +277,18 @@ class FitResult:
     log: the metrics fetched at each logging step (host floats), with the
       counts of the most recent densify (num_cloned, num_split,
       num_pruned, num_unplaced) once one has run.
+    scores: semantic guidance only: {step, view, s_hat_d, s_hat_s} of every
+      scored step (s_hat_s None where the scorer has none).
+    prune_events: semantic guidance only: {step, num_alive_before,
+      num_pruned_semantic, num_pruned_visibility, histogram} per prune.
   """
   state: TrainState
   cfg: config_lib.Config
   curve: list[dict[str, float]]
   train_seconds: float
   log: list[dict[str, float]]
+  scores: list[dict[str, Any]]
+  prune_events: list[dict[str, Any]]
 
 
 def _check_finite(step: int, values: dict[str, float]) -> None:
@@ -344,8 +317,14 @@ def _grow_if_needed(state: TrainState, cfg: config_lib.Config
   return densify.resize(state, new)
 
 
-def fit(cfg: config_lib.Config, scene, workdir: str, *, resume: bool = False,
-        progress: bool = True, stop_after: int | None = None) -> FitResult:
+def _finite_or_none(x) -> float | None:
+  x = float(x)
+  return x if math.isfinite(x) else None
+
+
+def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
+        resume: bool = False, progress: bool = True,
+        stop_after: int | None = None) -> FitResult:
   """Trains on scene.train, tracking test PSNR on scene.test.
 
   Each step runs the jitted train step; after the steps that `densify.due`
@@ -358,11 +337,16 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, resume: bool = False,
   at evaluations (every eval_every steps and at the end; the time they
   take is excluded from the curve's seconds) and at checkpoints
   (workdir/checkpoint.npz, every checkpoint_every steps and at the end).
+  With semantic guidance, the semantic prune (guidance.prune_due) runs
+  before densify/reset and its counts are fetched; each step's scores stay
+  on the device until the next log step.
 
   Args:
     cfg: the config; scene-dependent fields are resolved from `scene`.
     scene: a data.scene.Scene (train/test Views, points, extent).
     workdir: where the checkpoint goes (created if missing).
+    scorer: guidance.make_scorer(cfg.semantic, scene, ...); None exactly
+      when cfg.semantic is not enabled.
     resume: continue from workdir/checkpoint.npz if it exists; the result
       is bit-identical to an uninterrupted run.
     progress: show a tqdm progress bar.
@@ -370,11 +354,20 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, resume: bool = False,
       a preemption would (a later resume=True call finishes the run).
   """
   cfg = resolve(cfg, scene)
+  guidance.validate(cfg.semantic)
+  if (scorer is not None) != cfg.semantic.enabled:
+    raise ValueError(
+        f"train.fit: semantic scorer {cfg.semantic.scorer!r} with "
+        f"{len(cfg.semantic.distractor_prompts)} distractor prompts "
+        f"{'needs a' if cfg.semantic.enabled else 'takes no'} scorer; build "
+        "it with guidance.make_scorer(cfg.semantic, scene).")
   os.makedirs(workdir, exist_ok=True)
   ckpt_path = os.path.join(workdir, CHECKPOINT_NAME)
   batch = make_batch(scene.train)
   state = initial_state(cfg, scene)
   curve: list[dict[str, float]] = []
+  scores: list[dict[str, Any]] = []
+  prune_events: list[dict[str, Any]] = []
   train_seconds = 0.0
   if resume and os.path.exists(ckpt_path):
     state, meta = checkpoint.restore(ckpt_path, state)
@@ -384,6 +377,8 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, resume: bool = False,
                        "config; resume with the same flags or a new workdir.")
     curve = list(meta["extra"].get("curve", []))
     train_seconds = float(meta["extra"].get("train_seconds", 0.0))
+    scores = list(meta["extra"].get("scores", []))
+    prune_events = list(meta["extra"].get("prune_events", []))
     _log.info("resumed from %s at step %d", ckpt_path, int(state.step))
   elif resume:
     _log.info("no checkpoint at %s; starting from step 0", ckpt_path)
@@ -391,15 +386,25 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, resume: bool = False,
   step_fn = make_train_step(cfg)
   densify_fn = densify.make_densify(cfg)
   reset_fn = densify.make_reset_opacity(cfg)
+  prune_fn = guidance.make_prune(cfg)
   densify_key = jax.random.fold_in(state.key, _DENSIFY_STREAM)
   total = cfg.train.steps
   end = total if stop_after is None else min(total, stop_after)
   start = int(state.step)
   log: list[dict[str, float]] = []
+  pending: list[tuple[int, dict[str, jax.Array]]] = []   # unfetched scores
+
+  def flush_scores() -> None:
+    for step, values in jax.device_get(pending):
+      if math.isfinite(float(values["s_hat_d"])):
+        scores.append({"step": step, "view": int(values["view"]),
+                       "s_hat_d": float(values["s_hat_d"]),
+                       "s_hat_s": _finite_or_none(values["s_hat_s"])})
+    pending.clear()
 
   def eval_point(step: int) -> None:
-    result = evaluate(state.params, state.alive, scene.test, cfg,
-                      psnr_only=True)
+    result = evaluation.evaluate(state.params, state.alive, scene.test,
+                                 cfg, psnr_only=True)
     curve.append({"step": step, "seconds": train_seconds,
                   "test_psnr": result["mean/psnr"]})
     _log.info("step %d: test PSNR %.3f after %.1f s of training, %d alive",
@@ -407,8 +412,10 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, resume: bool = False,
               int(jnp.sum(state.alive)))
 
   def save() -> None:
+    flush_scores()
     checkpoint.save(ckpt_path, state, cfg,
-                    extra={"curve": curve, "train_seconds": train_seconds})
+                    extra={"curve": curve, "train_seconds": train_seconds,
+                           "scores": scores, "prune_events": prune_events})
 
   has_test = len(scene.test.images) > 0
   if start == 0 and has_test and cfg.train.eval_every:
@@ -422,7 +429,10 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, resume: bool = False,
   last_metrics, last_info = None, None
   try:
     for step in range(start + 1, end + 1):   # `step` = steps done after
-      state, last_metrics = step_fn(state, batch)
+      state, last_metrics = step_fn(state, batch, scorer)
+      if scorer is not None:
+        pending.append((step - 1, {k: last_metrics[k] for k in
+                                   guidance.SCORE_KEYS + ("view",)}))
       if bar is not None:
         bar.update(1)
       # Evaluate the result of the optimisation steps, before this step's
@@ -433,6 +443,18 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, resume: bool = False,
         train_seconds += time.perf_counter() - tic
         eval_point(step)
         tic = time.perf_counter()
+      # The semantic prune reads the trained opacities and statistics, so
+      # it runs before this step's densify (whose children start at n = 0)
+      # and opacity reset (which would put every alpha under alpha_min).
+      if guidance.prune_due(step, cfg):
+        state, info = prune_fn(state)
+        event = {k: np.asarray(v).tolist()
+                 for k, v in jax.device_get(info).items()}
+        prune_events.append({"step": step} | event)
+        _log.info("step %d: semantic prune removed %d (s_j > tau) + %d "
+                  "(rarely seen, faint) of %d", step,
+                  event["num_pruned_semantic"],
+                  event["num_pruned_visibility"], event["num_alive_before"])
       do_densify, do_reset = densify.due(step, cfg)
       if do_densify:
         state = _grow_if_needed(state, cfg)
@@ -442,8 +464,10 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, resume: bool = False,
         state = reset_fn(state)
       if step == end or (cfg.train.log_every
                          and step % cfg.train.log_every == 0):
+        flush_scores()
         values = {k: float(v) for k, v in
-                  jax.device_get(last_metrics).items()}
+                  jax.device_get(last_metrics).items()
+                  if k not in guidance.SCORE_KEYS + ("view",)}
         if last_info is not None:
           values.update({k: float(v) for k, v in
                          jax.device_get(last_info).items()})
@@ -474,5 +498,7 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, resume: bool = False,
   jax.block_until_ready(state)
   if start >= total:
     _log.info("checkpoint is already at step %d >= %d steps", start, total)
+  flush_scores()
   return FitResult(state=state, cfg=cfg, curve=curve,
-                   train_seconds=train_seconds, log=log)
+                   train_seconds=train_seconds, log=log, scores=scores,
+                   prune_events=prune_events)

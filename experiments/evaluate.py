@@ -21,6 +21,7 @@ from absl import logging
 
 from clipgs_jax import checkpoint
 from clipgs_jax import config as config_lib
+from clipgs_jax import evaluation
 from clipgs_jax import ply
 from clipgs_jax import train
 from clipgs_jax.data import images as images_lib
@@ -52,7 +53,7 @@ def test_metrics(params, alive, views, cfg: config_lib.Config,
      {view name: {"psnr", "ssim", "lpips"}}}.
   """
   tic = time.perf_counter()
-  result = train.evaluate(params, alive, views, cfg, lpips_net=lpips_net,
+  result = evaluation.evaluate(params, alive, views, cfg, lpips_net=lpips_net,
                           keep_images=renders_dir is not None)
   if renders_dir is not None:
     for name, image in zip(views.names, result["images"]):
@@ -77,15 +78,24 @@ def _read_json(path: str, what: str) -> dict:
     return json.load(f)
 
 
-def main(argv):
-  if len(argv) > 1:
-    raise app.UsageError(f"unexpected arguments {argv[1:]}")
-  workdir = FLAGS.workdir
+def load_run(workdir: str):
+  """(run.json dict, resolved config, scene) of a run folder of train.py.
+
+  A run.json without "train_split" (older runs) means "clutter".
+  """
   run = _read_json(os.path.join(workdir, "run.json"), "scene and downscale")
   cfg = config_lib.from_dict(_read_json(os.path.join(workdir, "config.json"),
                                         "the resolved config"))
   scene = scene_lib.load_scene(run["scene"], downscale=run["downscale"],
                                train_split=run.get("train_split", "clutter"))
+  return run, cfg, scene
+
+
+def main(argv):
+  if len(argv) > 1:
+    raise app.UsageError(f"unexpected arguments {argv[1:]}")
+  workdir = FLAGS.workdir
+  run, cfg, scene = load_run(workdir)
   ckpt = os.path.join(workdir, train.CHECKPOINT_NAME)
   ply_path = os.path.join(workdir, "point_cloud.ply")
   source = FLAGS.source

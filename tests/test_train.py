@@ -15,6 +15,7 @@ from absl.testing import absltest
 from clipgs_jax import camera
 from clipgs_jax import config
 from clipgs_jax import densify
+from clipgs_jax import evaluation
 from clipgs_jax import gaussians
 from clipgs_jax import sh
 from clipgs_jax import train
@@ -75,7 +76,7 @@ def synthetic_scene(num=48, size=32, num_train=8, num_test=2, seed=0):
     cams.append(camera.look_at(eye, [0, 0, 0], [0, 1, 0], size, size, size,
                                size))
   stacked = jax.tree.map(lambda *x: np.stack(x), *cams)
-  render = train._render_fn(TEST_CFG.render)
+  render = evaluation._render_fn(TEST_CFG.render)
   images = np.stack([
       np.asarray(render(params, alive, scene_lib.camera_at(stacked, i),
                         jnp.zeros(3), jnp.int32(0))) for i in range(total)])
@@ -194,7 +195,7 @@ class EndToEndTest(absltest.TestCase):
     self.assertTrue(os.path.exists(os.path.join(workdir,
                                                 train.CHECKPOINT_NAME)))
     # The final evaluation matches a fresh one of the returned state.
-    again = train.evaluate(state.params, state.alive, scene.test, result.cfg)
+    again = evaluation.evaluate(state.params, state.alive, scene.test, result.cfg)
     np.testing.assert_allclose(again["mean/psnr"], curve[-1]["test_psnr"],
                                rtol=1e-6)
 

@@ -1,0 +1,244 @@
+"""CLIP-GS semantic guidance inside training: scorers, schedule and pruning.
+
+The equations are the pure functions of `semantic.py`; this module decides
+when they run (SemanticConfig's schedule), what scores a view (a scorer),
+and applies the prune through `densify.write_rows`, so parameters, Adam
+moments and every per-row statistic move together.
+
+A scorer is a pytree with a method `score(image, view) -> {"s_hat_d",
+"s_hat_s"}` (float32 scalars; NaN where a scorer has no such score). It is
+passed to the jitted train step as its own argument, so frozen CLIP weights
+are an input of the step, never part of the trained state:
+  - `OracleScorer` (benchmarks only): the ground-truth transient mask of the
+    training view through `semantic.oracle_score`; no static score.
+  - `clip.scorer.ClipScorer` (the paper): the Flax CLIP tower on the
+    rendered view. It lives in the clip package and is imported only when
+    the config asks for it, so runs without CLIP never import it.
+"""
+
+import functools
+from typing import Any
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from clipgs_jax import config as config_lib
+from clipgs_jax import densify
+from clipgs_jax import semantic
+
+# Keys of the per-step scores in the train step's metrics.
+SCORE_KEYS = ("s_hat_d", "s_hat_s")
+# Bins of the s_j histogram logged at each prune event, over [0, beta / 2]:
+# s_j is a mean of beta * max(0, s_hat_d - 0.5) <= beta / 2.
+HISTOGRAM_BINS = 50
+
+
+@flax.struct.dataclass
+class OracleScorer:
+  """Scores a training view from its ground-truth transient mask.
+
+  Not the paper's method: a perfect image-level detector, for benchmarks,
+  labelled "oracle" in every output. See `semantic.oracle_score`.
+
+  Attributes:
+    masks: bool [V, H, W], True = transient pixel, per training view.
+    saturation: area fraction at which the score reaches 1.
+  """
+  masks: jax.Array
+  saturation: float = flax.struct.field(pytree_node=False)
+
+  def score(self, image: jax.Array, view: jax.Array) -> dict[str, jax.Array]:
+    del image  # a perfect detector does not need to look
+    return {"s_hat_d": semantic.oracle_score(self.masks[view],
+                                             self.saturation),
+            "s_hat_s": jnp.float32(jnp.nan)}
+
+
+def validate(sem: config_lib.SemanticConfig) -> None:
+  """Rejects a SemanticConfig that cannot run, naming the field."""
+  problems = []
+  if sem.scorer not in config_lib.SCORERS:
+    problems.append(f"scorer={sem.scorer!r} is not one of "
+                    f"{', '.join(config_lib.SCORERS)}")
+  if sem.weighting not in config_lib.WEIGHTINGS:
+    problems.append(f"weighting={sem.weighting!r} is not one of "
+                    f"{', '.join(config_lib.WEIGHTINGS)}")
+  if not 0.0 <= sem.tau <= 1.0:
+    problems.append(f"tau={sem.tau} is not in [0, 1]")
+  if not sem.beta > 0:
+    problems.append(f"beta={sem.beta} must be positive")
+  if not sem.lambda_c >= 0:
+    problems.append(f"lambda_c={sem.lambda_c} must be >= 0")
+  for name in ("accumulate_start", "reg_start", "prune_start"):
+    if getattr(sem, name) < 0:
+      problems.append(f"{name}={getattr(sem, name)} must be >= 0")
+  for name in ("prune_every", "score_every"):
+    if getattr(sem, name) < 1:
+      problems.append(f"{name}={getattr(sem, name)} must be >= 1")
+  if not 0.0 < sem.oracle_saturation <= 1.0:
+    problems.append(f"oracle_saturation={sem.oracle_saturation} is not in "
+                    "(0, 1]")
+  if any(not p.strip() for p in sem.distractor_prompts + sem.static_prompts):
+    problems.append("a prompt is empty")
+  if problems:
+    raise ValueError("SemanticConfig: " + "; ".join(problems) + ".")
+
+
+def make_scorer(sem: config_lib.SemanticConfig, scene, *,
+                clip_weights: str | None = None,
+                clip_params: tuple[Any, dict] | None = None):
+  """The scorer `sem` asks for, or None when guidance is off.
+
+  Args:
+    sem: the semantic config; `sem.enabled` False (scorer "off" or no
+      distractor prompts) returns None and imports nothing.
+    scene: a data.scene.Scene; the oracle reads `scene.train.masks`.
+    clip_weights: the --clip_weights flag (else $CLIPGS_CLIP_WEIGHTS).
+    clip_params: (ClipConfig, params) to use instead of a weights file
+      (benchmarks with random weights, tests).
+  """
+  validate(sem)
+  if not sem.enabled:
+    return None
+  if sem.scorer == "oracle":
+    masks = scene.train.masks
+    if masks is None:
+      raise ValueError(
+          "semantic scorer 'oracle' reads ground-truth transient masks, but "
+          "this scene has none: add masks/<image stem>.png (white = "
+          "transient) for the training views, or use --semantic=clip|off.")
+    return OracleScorer(masks=jnp.asarray(masks, bool),
+                        saturation=sem.oracle_saturation)
+  # Only here is CLIP imported.
+  from clipgs_jax.clip import scorer as clip_scorer  # pylint: disable=g-import-not-at-top
+  return clip_scorer.make(sem, weights_path=clip_weights,
+                          clip_params=clip_params)
+
+
+def scores_due(step: jax.Array, sem: config_lib.SemanticConfig) -> jax.Array:
+  """bool []: the step that starts at `step` finished steps scores its view."""
+  since = step - sem.accumulate_start
+  return (since >= 0) & (since % sem.score_every == 0)
+
+
+def opacity_regularizer(stats: densify.SemanticStats,
+                        opacity_logits: jax.Array, alive: jax.Array,
+                        step: jax.Array, sem: config_lib.SemanticConfig
+                        ) -> jax.Array:
+  """Eqs. 11-12 from reg_start on, 0 before."""
+  loss = semantic.opacity_loss(stats, opacity_logits, alive, sem.lambda_c)
+  return jnp.where(step >= sem.reg_start, loss, 0.0)
+
+
+def score_and_accumulate(stats: densify.SemanticStats, image: jax.Array,
+                         weight: jax.Array, view: jax.Array,
+                         step: jax.Array, scorer,
+                         sem: config_lib.SemanticConfig
+                         ) -> tuple[densify.SemanticStats,
+                                    dict[str, jax.Array]]:
+  """Scores the rendered view when due and accumulates (eqs. 5-9).
+
+  The scorer runs under `lax.cond`, so off-cadence steps skip it. Their
+  scores are NaN, which `semantic.accumulate` treats as "no view".
+
+  Args:
+    stats: per-row acc and n.
+    image: float [H, W, 3], the render used for the photometric loss.
+    weight: bool [C] visibility or float [C] contribution of each Gaussian
+      to the render (sem.weighting; see semantic.accumulate).
+    view: int32 [], the training view's index.
+    step: int32 [], finished steps before this one.
+    scorer: an object with `score(image, view)` (see module docstring).
+    sem: the semantic config.
+  Returns:
+    (stats, {"s_hat_d", "s_hat_s"}), NaN scores on steps that did not score.
+  """
+  image = jax.lax.stop_gradient(jnp.clip(image, 0.0, 1.0))
+  skipped = {k: jnp.float32(jnp.nan) for k in SCORE_KEYS}
+  scores = jax.lax.cond(
+      scores_due(step, sem),
+      lambda: {k: jnp.asarray(v, jnp.float32)
+               for k, v in scorer.score(image, view).items()},
+      lambda: skipped)
+  stats = semantic.accumulate(stats, weight, scores["s_hat_d"], sem.beta)
+  return stats, scores
+
+
+def prune_due(step: int, cfg: config_lib.Config) -> bool:
+  """Host-side: prune after `step` finished steps (from prune_start on).
+
+  Never after the last step, as densification (densify.due): what crossed
+  tau since the last prune stays in the final model, down-weighted by the
+  opacity loss, and `experiments/render.py --masks` can still show it.
+  """
+  sem = cfg.semantic
+  since = step - sem.prune_start
+  return (sem.enabled and 0 < step < cfg.train.steps and since >= 0
+          and since % sem.prune_every == 0)
+
+
+def prune(state, *, cfg: config_lib.Config):
+  """Eq. 13: removes alive rows with s_j > tau, or n_j < n_min and
+  alpha_j < alpha_min; their parameters, moments and statistics are cleared.
+
+  n_min is divided by score_every: n counts scored views only, so scoring
+  every k-th step makes n a 1/k sample of the views a Gaussian was seen in.
+
+  Returns:
+    (state, info) with int32 num_alive_before, num_pruned_semantic,
+    num_pruned_visibility, and float32 [HISTOGRAM_BINS] histogram of s_j
+    over the alive rows before the prune (bins over [0, beta / 2]).
+  """
+  sem = cfg.semantic
+  by_score, by_visibility = semantic.prune_masks(
+      state.semantic, state.params.opacity_logits, state.alive,
+      tau=sem.tau, n_min=sem.n_min / sem.score_every,
+      alpha_min=sem.alpha_min)
+  s = semantic.normalized_scores(state.semantic)
+  histogram, _ = jnp.histogram(s, bins=HISTOGRAM_BINS,
+                               range=(0.0, 0.5 * sem.beta),
+                               weights=state.alive.astype(jnp.float32))
+  capacity = state.alive.shape[0]
+  rows = jnp.arange(capacity, dtype=jnp.int32)
+  info = {
+      "num_alive_before": jnp.sum(state.alive, dtype=jnp.int32),
+      "num_pruned_semantic": jnp.sum(by_score, dtype=jnp.int32),
+      "num_pruned_visibility": jnp.sum(by_visibility, dtype=jnp.int32),
+      "histogram": histogram,
+  }
+  state = densify.write_rows(
+      state, jnp.where(by_score | by_visibility, rows, capacity), None,
+      alive=False)
+  return state, info
+
+
+@functools.lru_cache(maxsize=None)
+def make_prune(cfg: config_lib.Config):
+  """Jitted prune(state) -> (state, info); the state is donated."""
+  return jax.jit(functools.partial(prune, cfg=cfg), donate_argnums=(0,))
+
+
+def histogram_edges(sem: config_lib.SemanticConfig) -> list[float]:
+  """The HISTOGRAM_BINS + 1 bin edges of the prune-event histogram."""
+  return np.linspace(0.0, 0.5 * sem.beta, HISTOGRAM_BINS + 1).tolist()
+
+
+def summarize(prune_events: list[dict], num_alive: int,
+              stats: densify.SemanticStats) -> dict[str, Any]:
+  """The metrics.json fields of a run's semantic stage.
+
+  fraction_pruned = Gaussians removed by the semantic prune / (those
+  removed + those alive at the end).
+  """
+  semantic_total = sum(e["num_pruned_semantic"] for e in prune_events)
+  visibility_total = sum(e["num_pruned_visibility"] for e in prune_events)
+  removed = semantic_total + visibility_total
+  return {
+      "num_pruned_semantic": semantic_total,
+      "num_pruned_visibility": visibility_total,
+      "fraction_pruned": removed / max(removed + num_alive, 1),
+      "num_prune_events": len(prune_events),
+      "semantic_bytes": semantic.state_bytes(stats),
+  }

@@ -1,0 +1,372 @@
+"""Tests for guidance: schedule, scorers, prune bookkeeping, the wired step."""
+
+import dataclasses
+import functools
+import os
+import subprocess
+import sys
+import textwrap
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl.testing import absltest
+from absl.testing import parameterized
+
+from clipgs_jax import config
+from clipgs_jax import densify
+from clipgs_jax import guidance
+from clipgs_jax import train
+from test_densify import CFG as DENSIFY_CFG  # pylint: disable=g-bad-import-order
+from test_densify import _drive, _make_state, _row_leaves, _tag_state  # pylint: disable=g-bad-import-order
+from test_train import CompileCounter, TEST_CFG, synthetic_scene  # pylint: disable=g-bad-import-order
+
+ORACLE = config.SemanticConfig(scorer="oracle")
+
+
+def _cfg(**semantic_fields):
+  return dataclasses.replace(
+      DENSIFY_CFG, semantic=dataclasses.replace(ORACLE, **semantic_fields))
+
+
+def _state_with_stats(acc, n, opacity, alive):
+  """A 4..8-row state whose semantic stats and opacities are given."""
+  c = len(acc)
+  state = _make_state(c, c, np.random.default_rng(0))
+  logits = np.log(np.asarray(opacity) / (1 - np.asarray(opacity)))
+  return state.replace(
+      alive=jnp.asarray(alive),
+      params=state.params.replace(
+          opacity_logits=jnp.asarray(logits, jnp.float32)),
+      semantic=densify.SemanticStats(acc=jnp.asarray(acc, jnp.float32),
+                                     n=jnp.asarray(n, jnp.float32)))
+
+
+class ScheduleTest(parameterized.TestCase):
+
+  def test_scores_due(self):
+    sem = config.SemanticConfig(accumulate_start=5, score_every=3)
+    due = [bool(guidance.scores_due(jnp.int32(s), sem)) for s in range(12)]
+    # Steps 5, 8, 11 score; nothing before accumulate_start.
+    self.assertEqual([s for s, d in enumerate(due) if d], [5, 8, 11])
+
+  def test_prune_due(self):
+    cfg = config.Config(
+        train=config.TrainConfig(steps=20_000),
+        semantic=config.SemanticConfig(scorer="oracle"))
+    due = [s for s in range(20_001) if guidance.prune_due(s, cfg)]
+    # From 5000 every 1000; never after the last step (as densify.due).
+    self.assertEqual(due, list(range(5000, 20_000, 1000)))
+    off = dataclasses.replace(cfg, semantic=config.SemanticConfig())
+    self.assertFalse(any(guidance.prune_due(s, off) for s in range(20_001)))
+    no_prompts = dataclasses.replace(cfg, semantic=config.SemanticConfig(
+        scorer="clip", distractor_prompts=()))
+    self.assertFalse(no_prompts.semantic.enabled)
+    self.assertFalse(guidance.prune_due(5000, no_prompts))
+
+  def test_scaled_schedule(self):
+    sem = config.SemanticConfig().scaled_to(2000)
+    # 500/2000/5000/1000 of 20k steps -> one tenth.
+    self.assertEqual((sem.accumulate_start, sem.reg_start, sem.prune_start,
+                      sem.prune_every), (50, 200, 500, 100))
+
+  @parameterized.parameters(
+      ("scorer", "bogus", "scorer="), ("tau", 1.5, "tau="),
+      ("tau", -0.1, "tau="), ("beta", 0.0, "beta="),
+      ("score_every", 0, "score_every="), ("prune_every", 0, "prune_every="),
+      ("oracle_saturation", 0.0, "oracle_saturation="),
+      ("distractor_prompts", ("a photo of a person", " "), "prompt is empty"))
+  def test_validate_names_the_field(self, field, value, message):
+    sem = dataclasses.replace(ORACLE, **{field: value})
+    with self.assertRaisesRegex(ValueError, message):
+      guidance.validate(sem)
+
+  def test_tau_edges_are_valid(self):
+    guidance.validate(dataclasses.replace(ORACLE, tau=0.0))
+    guidance.validate(dataclasses.replace(ORACLE, tau=1.0))
+
+
+class ScorerTest(absltest.TestCase):
+
+  def test_oracle(self):
+    masks = np.zeros((2, 4, 5), bool)
+    masks[1, :2, :] = True                      # 10 of 20 pixels: f = 0.5
+    scorer = guidance.OracleScorer(masks=jnp.asarray(masks), saturation=0.25)
+    image = jnp.zeros((4, 5, 3))
+    clean = scorer.score(image, jnp.int32(0))
+    self.assertEqual(float(clean["s_hat_d"]), 0.5)   # clean view: neutral
+    self.assertTrue(np.isnan(clean["s_hat_s"]))       # no static score
+    # f / saturation = 2 -> capped at 1 -> s_hat_d = 0.5 + 0.5 = 1.
+    self.assertEqual(float(scorer.score(image, jnp.int32(1))["s_hat_d"]), 1.0)
+
+  def test_oracle_needs_masks(self):
+    scene = synthetic_scene(num=8, size=8, num_train=2, num_test=1)
+    with self.assertRaisesRegex(ValueError, "masks/"):
+      guidance.make_scorer(ORACLE, scene)
+
+  def test_off_imports_nothing(self):
+    self.assertIsNone(guidance.make_scorer(config.SemanticConfig(), None))
+    self.assertIsNone(guidance.make_scorer(config.SemanticConfig(
+        scorer="clip", distractor_prompts=()), None))
+
+  def test_score_and_accumulate(self):
+    sem = config.SemanticConfig(scorer="oracle", accumulate_start=3,
+                                score_every=2, beta=0.1)
+    masks = np.zeros((1, 2, 2), bool)
+    masks[0, 0, 0] = True                       # f = 0.25
+    scorer = guidance.OracleScorer(masks=jnp.asarray(masks), saturation=0.5)
+    stats = densify.SemanticStats(acc=jnp.zeros(3), n=jnp.zeros(3))
+    visible = jnp.array([True, False, True])
+    image = jnp.zeros((2, 2, 3))
+    fn = jax.jit(guidance.score_and_accumulate, static_argnums=(6,))
+    # Step 2: before accumulate_start -> unchanged, NaN scores.
+    out, scores = fn(stats, image, visible, jnp.int32(0), jnp.int32(2),
+                     scorer, sem)
+    chex.assert_trees_all_equal(out, stats)
+    self.assertTrue(np.isnan(scores["s_hat_d"]))
+    # Step 3: s_hat_d = 0.5 + 0.5 * 0.25 / 0.5 = 0.75; gain 0.1 * 0.25.
+    out, scores = fn(stats, image, visible, jnp.int32(0), jnp.int32(3),
+                     scorer, sem)
+    self.assertAlmostEqual(float(scores["s_hat_d"]), 0.75, places=6)
+    np.testing.assert_allclose(out.acc, [0.025, 0.0, 0.025], rtol=1e-6)
+    np.testing.assert_array_equal(out.n, [1, 0, 1])
+    # Step 4: off cadence (score_every 2) -> unchanged.
+    out4, _ = fn(out, image, visible, jnp.int32(0), jnp.int32(4), scorer, sem)
+    chex.assert_trees_all_equal(out4, out)
+
+
+class PruneTest(parameterized.TestCase):
+
+  def test_prune_by_condition(self):
+    cfg = _cfg(tau=0.015, n_min=10.0, alpha_min=0.1, beta=0.1)
+    # s_j = acc / n: 0.0205 (> tau), 0.0105, 0 (n = 0), 0.0105, 0.03 (dead).
+    acc = [0.205, 0.105, 0.0, 0.0525, 0.3]
+    n = [10.0, 10.0, 0.0, 5.0, 10.0]
+    opacity = [0.5, 0.05, 0.05, 0.5, 0.5]
+    alive = [True, True, True, True, False]
+    state = _state_with_stats(acc, n, opacity, alive)
+    state, info = guidance.prune(state, cfg=cfg)
+    # Row 0: semantic. Row 2: n = 0 < 10 and alpha 0.05 < 0.1: visibility.
+    # Row 1: n = 10 is not < 10. Row 3: alpha 0.5. Row 4 was dead.
+    np.testing.assert_array_equal(state.alive, [False, True, False, True,
+                                                False])
+    self.assertEqual(int(info["num_pruned_semantic"]), 1)
+    self.assertEqual(int(info["num_pruned_visibility"]), 1)
+    self.assertEqual(int(info["num_alive_before"]), 4)
+    # Pruned rows' statistics and moments are cleared; others kept.
+    np.testing.assert_allclose(state.semantic.acc,
+                               [0, 0.105, 0, 0.0525, 0.3])
+    np.testing.assert_allclose(state.semantic.n, [0, 10, 0, 5, 10])
+    for leaf in _row_leaves(state):
+      self.assertTrue(np.all(leaf[0] == 0) and np.all(leaf[2] == 0))
+    # Histogram over alive rows before the prune: bins of width 0.001 on
+    # [0, 0.05]; s = 0.0205, 0.0105, 0, 0.0105 -> bins 20, 10, 0, 10.
+    hist = np.asarray(info["histogram"])
+    self.assertEqual(hist.sum(), 4)
+    self.assertEqual(hist[10], 2)
+    self.assertEqual(hist[0], 1)
+    self.assertEqual(hist[20], 1)
+
+  @parameterized.parameters((0.0, 2), (1.0, 0))
+  def test_tau_edges(self, tau, expected):
+    cfg = _cfg(tau=tau, n_min=0.0)
+    # s_j = 0.05 (the maximum, beta / 2), 0.001, and 0 (never seen).
+    state = _state_with_stats([0.5, 0.01, 0.0, 0.0], [10, 10, 0, 0],
+                              [0.5] * 4, [True, True, True, False])
+    _, info = guidance.prune(state, cfg=cfg)
+    # tau = 0 prunes every alive row with s_j > 0 (rows 0 and 1; s_j = 0
+    # is not > 0); tau = 1 prunes none: s_j <= beta / 2 < 1.
+    self.assertEqual(int(info["num_pruned_semantic"]), expected)
+
+  def test_rows_stay_aligned_over_densify_and_prune_cycles(self):
+    cfg = _cfg(tau=0.5, n_min=3.0, alpha_min=0.1)
+    rng = np.random.default_rng(1)
+    state = _make_state(64, 16, rng)
+    tags = np.zeros(64)
+    tags[:16] = np.arange(1, 17)
+    state = _tag_state(state, tags)
+    def aligned_prune(s):
+      return guidance.prune(s, cfg=cfg)
+    def aligned_densify(s, k):
+      return densify.densify(s, k, cfg=cfg)
+    # Fixed capacity: each compiles once over all cycles.
+    chex.clear_trace_counter()
+    prune_fn = jax.jit(chex.assert_max_traces(aligned_prune, n=1))
+    densify_fn = jax.jit(chex.assert_max_traces(aligned_densify, n=1))
+    next_tag = 17
+    pruned = 0
+    for cycle in range(6):
+      state, _ = densify_fn(_drive(state, rng), jax.random.key(cycle))
+      # Tag new rows; statistics s_j = tag / n chosen so some rows cross tau
+      # (n = 1: s = tag > 0.5) and others are rarely seen (n = 2 < 3).
+      host = jax.device_get(state)
+      tags = np.where(host.alive, host.params.sh_dc[:, 0], 0.0)
+      new = host.alive & (tags == 0)
+      tags[new] = np.arange(next_tag, next_tag + new.sum())
+      next_tag += int(new.sum())
+      state = _tag_state(state, tags)
+      n = np.where(rng.random(64) < 0.2, 1.0, 2.0 * tags)
+      acc = np.where(n == 1.0, tags, 0.0)
+      state = state.replace(semantic=densify.SemanticStats(
+          acc=jnp.asarray(acc, jnp.float32),
+          n=jnp.asarray(np.where(host.alive, n, 0.0), jnp.float32)))
+      before = jax.device_get(state)
+      state, info = prune_fn(state)
+      after = jax.device_get(state)
+      pruned += int(info["num_pruned_semantic"])
+      removed = before.alive & ~after.alive
+      self.assertEqual(removed.sum(), int(info["num_pruned_semantic"])
+                       + int(info["num_pruned_visibility"]))
+      # Survivors keep params, statistics and moments of the same row.
+      kept = after.alive
+      np.testing.assert_array_equal(after.params.sh_dc[kept],
+                                    before.params.sh_dc[kept])
+      np.testing.assert_array_equal(after.semantic.acc[kept],
+                                    before.semantic.acc[kept])
+      for m0, m1 in zip(_row_leaves(before), _row_leaves(after)):
+        np.testing.assert_array_equal(m1[kept], m0[kept])
+        self.assertTrue(np.all(m1[removed] == 0))
+      self.assertTrue(np.all(after.semantic.acc[~after.alive] == 0))
+      self.assertTrue(np.all(after.semantic.n[~after.alive] == 0))
+    self.assertGreater(pruned, 0)
+
+
+def _masked_scene():
+  """The synthetic scene with a transient mask on half its training views."""
+  scene = synthetic_scene()
+  masks = np.zeros(scene.train.images.shape[:3], bool)
+  masks[::2, :8, :8] = True                     # 64 / 1024 px = 1/16
+  return dataclasses.replace(
+      scene, train=dataclasses.replace(scene.train, masks=masks))
+
+
+class WiredStepTest(absltest.TestCase):
+
+  def test_off_is_the_vanilla_step(self):
+    scene = synthetic_scene()
+    cfg = train.resolve(TEST_CFG, scene)
+    state = train.initial_state(cfg, scene)
+    batch = train.make_batch(scene.train)
+    def lowered(c):
+      return jax.jit(lambda s, b: train.train_step(s, b, cfg=c)).lower(
+          state, batch).as_text()
+    vanilla = lowered(cfg)
+    # Guidance off, or CLIP with no distractor prompts: the same program.
+    for sem in (config.SemanticConfig(tau=0.3, beta=0.5),
+                config.SemanticConfig(scorer="clip", distractor_prompts=())):
+      self.assertEqual(lowered(dataclasses.replace(cfg, semantic=sem)),
+                       vanilla)
+    with self.assertRaisesRegex(ValueError, "takes no"):
+      train.train_step(state, batch, guidance.OracleScorer(
+          masks=jnp.zeros((8, 32, 32), bool), saturation=0.1), cfg=cfg)
+
+  def test_oracle_fit(self):
+    train.make_train_step.cache_clear()
+    guidance.make_prune.cache_clear()
+    scene = _masked_scene()
+    sem = config.SemanticConfig(
+        scorer="oracle", accumulate_start=10, reg_start=20, prune_start=40,
+        prune_every=20, tau=0.02, oracle_saturation=0.125)
+    cfg = dataclasses.replace(TEST_CFG, semantic=sem)
+    scorer = guidance.make_scorer(sem, scene)
+    workdir = self.create_tempdir().full_path
+    with CompileCounter() as compiles:
+      result = train.fit(cfg, scene, workdir, scorer=scorer, progress=False)
+    # Every step from 10 on scored its view with the oracle formula:
+    # masked views f = 1/16, f / 0.125 = 0.5 -> 0.75; clean views 0.5.
+    self.assertEqual([s["step"] for s in result.scores], list(range(10, 120)))
+    for s in result.scores:
+      self.assertAlmostEqual(s["s_hat_d"], 0.75 if s["view"] % 2 == 0
+                             else 0.5, places=6)
+      self.assertIsNone(s["s_hat_s"])
+    # Prunes after 40, 60, 80, 100 (not after the last step, 120).
+    self.assertEqual([e["step"] for e in result.prune_events],
+                     [40, 60, 80, 100])
+    for e in result.prune_events:
+      self.assertEqual(sum(e["histogram"]), e["num_alive_before"])
+    self.assertEqual(compiles.count("train_step"), 1, compiles.names)
+    self.assertEqual(compiles.count("prune"), 1, compiles.names)
+    self.assertGreater(result.curve[-1]["test_psnr"],
+                       result.curve[0]["test_psnr"] + 3.0)
+    # The logs survive a resume from the final checkpoint.
+    again = train.fit(cfg, scene, workdir, scorer=scorer, resume=True,
+                      progress=False)
+    self.assertEqual(again.scores, result.scores)
+    self.assertEqual(again.prune_events, result.prune_events)
+    self.assertNotIn("clipgs_jax.clip.scorer", sys.modules)
+
+  def test_fit_checks_the_scorer(self):
+    scene = _masked_scene()
+    cfg = dataclasses.replace(TEST_CFG, semantic=ORACLE)
+    with self.assertRaisesRegex(ValueError, "needs a"):
+      train.fit(cfg, scene, self.create_tempdir().full_path, progress=False)
+
+
+class ClipScorerTest(absltest.TestCase):
+  """The paper's scorer on random "tiny" weights (shapes, not semantics)."""
+
+  def setUp(self):
+    super().setUp()
+    from clipgs_jax.clip import model  # pylint: disable=g-import-not-at-top
+    self.model = model
+    self.clip_config = model.get_config("tiny")
+    self.params = model.init_params(self.clip_config, jax.random.key(0))
+    self.sem = config.SemanticConfig(scorer="clip", clip_variant="tiny",
+                                     accumulate_start=0)
+    self.scorer = guidance.make_scorer(
+        self.sem, None, clip_params=(self.clip_config, self.params))
+
+  def test_scores_are_the_towers_cosines(self):
+    from clipgs_jax.clip import preprocess  # pylint: disable=g-import-not-at-top
+    image = jax.random.uniform(jax.random.key(1), (24, 40, 3))
+    got = self.scorer.score(image, jnp.int32(0))
+    feature = self.model.encode_image(
+        self.params, preprocess.preprocess(image[None], size=32),
+        config=self.clip_config)[0]
+    texts = self.model.TextEmbeddingCache(self.params, self.clip_config)
+    for key, prompts in (("s_hat_d", self.sem.distractor_prompts),
+                         ("s_hat_s", self.sem.static_prompts)):
+      cos = np.asarray(texts(prompts) @ feature)
+      np.testing.assert_allclose(got[key], (cos.max() + 1) / 2, rtol=1e-5)
+
+  def test_step_scores_and_accumulates(self):
+    scene = synthetic_scene()
+    cfg = train.resolve(dataclasses.replace(TEST_CFG, semantic=self.sem),
+                        scene)
+    state = train.initial_state(cfg, scene)
+    step = jax.jit(functools.partial(train.train_step, cfg=cfg))
+    state, metrics = step(state, train.make_batch(scene.train), self.scorer)
+    s_hat_d = float(metrics["s_hat_d"])
+    self.assertTrue(0.0 <= s_hat_d <= 1.0)
+    seen = np.asarray(state.semantic.n) > 0
+    self.assertGreater(seen.sum(), 0)
+    np.testing.assert_allclose(
+        np.asarray(state.semantic.acc)[seen],
+        0.1 * max(0.0, s_hat_d - 0.5), rtol=1e-5)
+
+
+class NoClipImportTest(absltest.TestCase):
+
+  def test_off_and_oracle_never_import_clip(self):
+    # A fresh interpreter: other tests in this process import CLIP.
+    code = textwrap.dedent("""
+        import sys
+        from clipgs_jax import config, guidance, train
+        from clipgs_jax.data import default_scene, scene
+        s = scene.load_scene(default_scene.ensure_default_scene(),
+                             downscale=4)
+        for sem in (config.SemanticConfig(),
+                    config.SemanticConfig(scorer="clip",
+                                          distractor_prompts=()),
+                    config.SemanticConfig(scorer="oracle")):
+          guidance.make_scorer(sem, s)
+        clip = [m for m in sys.modules if m.startswith("clipgs_jax.clip")]
+        assert not clip, clip
+        """)
+    subprocess.run([sys.executable, "-c", code], check=True,
+                   cwd=os.path.dirname(os.path.dirname(__file__)))
+
+
+if __name__ == "__main__":
+  absltest.main()
