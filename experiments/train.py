@@ -3,7 +3,11 @@
   python experiments/train.py --workdir=DIR [--scene=DIR] [--downscale=K]
       [--steps=N] [--seed=S] [--preset=default|smoke] [--resume]
       [--random_background] [--lpips_net=alex|vgg] [--curve_points=20]
-      [--tile_budget=K]
+      [--tile_budget=K] [--checkpoint_every=N]
+      [--semantic=off|clip|oracle] [--distractor_prompts=P1,P2,...]
+      [--static_prompts=...] [--tau=T] [--clip_weights=PATH]
+      [--score_every=K] [--semantic_weighting=visibility|contribution]
+      [--scale_semantic_schedule]
 
 Without --scene, the embedded default scene
 (data.default_scene.ensure_default_scene()) is used, with
@@ -26,6 +30,21 @@ Writes into --workdir (every file atomically: temp file + rename):
   curve.png         test error against training time (plot_curve.py)
   point_cloud.ply   the alive Gaussians (3DGS PLY layout)
   renders/test/     one PNG per test view
+
+With semantic guidance (--semantic=clip|oracle and distractor prompts),
+also (the oracle scorer reads ground-truth masks; every output names the
+scorer):
+  scores.jsonl      one {"step", "view", "s_hat_d", "s_hat_s"} per scored
+                    step (s_hat_s null for the oracle)
+  prune_events.json {"scorer", "histogram_edges", "events": [{"step",
+                    "num_alive_before", "num_pruned_semantic",
+                    "num_pruned_visibility", "histogram"}]}, the histogram
+                    of s_j over the alive Gaussians before each prune
+  metrics.json      gains "semantic": {"scorer", "label",
+                    "num_pruned_semantic", "num_pruned_visibility",
+                    "fraction_pruned", "semantic_bytes", ...}
+With --semantic=off or --distractor_prompts= (empty), CLIP is never
+imported and the train step is the vanilla 3DGS step.
 """
 
 import dataclasses
@@ -43,6 +62,7 @@ import jax
 
 from clipgs_jax import checkpoint
 from clipgs_jax import config as config_lib
+from clipgs_jax import guidance
 from clipgs_jax import ply
 from clipgs_jax import train
 from clipgs_jax.data import default_scene
@@ -79,9 +99,37 @@ _CURVE_POINTS = flags.DEFINE_integer(
 _TILE_BUDGET = flags.DEFINE_integer(
     "tile_budget", None, "RenderConfig.tile_budget (default: the preset's); "
     "raise it when the log warns that tile-list entries were dropped.")
+_CHECKPOINT_EVERY = flags.DEFINE_integer(
+    "checkpoint_every", None, "Checkpoint cadence in steps (default: the "
+    "preset's); long runs that may be interrupted want a short one.")
 _TRAIN_SPLIT = flags.DEFINE_enum(
     "train_split", "clutter", list(scene_lib.TRAIN_SPLITS),
     "RobustNeRF scenes: train on clutter views or on the clean twins.")
+_SEMANTIC = flags.DEFINE_enum(
+    "semantic", "off", list(config_lib.SCORERS),
+    "Semantic guidance scorer: off (vanilla 3DGS), clip (the paper: needs "
+    "--clip_weights), oracle (benchmarks only: ground-truth masks).")
+_DISTRACTOR_PROMPTS = flags.DEFINE_list(
+    "distractor_prompts", list(config_lib.PAPER_DISTRACTOR_PROMPTS),
+    "Distractor prompt set D, comma-separated; empty turns guidance off.")
+_STATIC_PROMPTS = flags.DEFINE_list(
+    "static_prompts", list(config_lib.PAPER_STATIC_PROMPTS),
+    "Static prompt set S (s_hat_s is logged only), comma-separated.")
+_TAU = flags.DEFINE_float("tau", None, "Prune threshold on s_j (paper: "
+                          "0.015).")
+_CLIP_WEIGHTS = flags.DEFINE_string(
+    "clip_weights", None, "CLIP weights for --semantic=clip (OpenAI .pt, HF "
+    "safetensors or directory, or .npz); default $CLIPGS_CLIP_WEIGHTS.")
+_SCORE_EVERY = flags.DEFINE_integer(
+    "score_every", None, "Score every k-th step (paper: 1).")
+_SEMANTIC_WEIGHTING = flags.DEFINE_enum(
+    "semantic_weighting", "visibility", list(config_lib.WEIGHTINGS),
+    "visibility: the paper's accumulation (each visible Gaussian gains the "
+    "view's score once); contribution: weighted by the Gaussian's blending "
+    "weight in the view (a measured variant, see BUILD_NOTES.md).")
+_SCALE_SEMANTIC_SCHEDULE = flags.DEFINE_bool(
+    "scale_semantic_schedule", False, "Scale the paper's semantic schedule "
+    "(500/2000/5000/1000 of 20k steps) to --steps, for short runs.")
 flags.mark_flag_as_required("workdir")
 
 
@@ -100,6 +148,11 @@ def config_from_flags(embedded: bool) -> config_lib.Config:
     t = dataclasses.replace(t, seed=_SEED.value)
   if _RANDOM_BACKGROUND.value:
     t = dataclasses.replace(t, random_background=True)
+  if _CHECKPOINT_EVERY.value is not None:
+    if _CHECKPOINT_EVERY.value <= 0:
+      raise app.UsageError(f"--checkpoint_every must be positive, got "
+                           f"{_CHECKPOINT_EVERY.value}.")
+    t = dataclasses.replace(t, checkpoint_every=_CHECKPOINT_EVERY.value)
   if _CURVE_POINTS.value > 0:
     t = dataclasses.replace(t, eval_every=max(1, t.steps // _CURVE_POINTS.value))
   cfg = dataclasses.replace(cfg, train=t)
@@ -109,7 +162,56 @@ def config_from_flags(embedded: bool) -> config_lib.Config:
                            f"{_TILE_BUDGET.value}.")
     cfg = dataclasses.replace(cfg, render=dataclasses.replace(
         cfg.render, tile_budget=_TILE_BUDGET.value))
-  return cfg
+  sem = dataclasses.replace(
+      cfg.semantic, scorer=_SEMANTIC.value,
+      distractor_prompts=tuple(_DISTRACTOR_PROMPTS.value),
+      static_prompts=tuple(_STATIC_PROMPTS.value),
+      weighting=_SEMANTIC_WEIGHTING.value)
+  if _TAU.value is not None:
+    sem = dataclasses.replace(sem, tau=_TAU.value)
+  if _SCORE_EVERY.value is not None:
+    sem = dataclasses.replace(sem, score_every=_SCORE_EVERY.value)
+  if _SCALE_SEMANTIC_SCHEDULE.value:
+    sem = sem.scaled_to(t.steps)
+  try:
+    guidance.validate(sem)
+  except ValueError as e:
+    raise app.UsageError(f"semantic flags: {e}") from e
+  return dataclasses.replace(cfg, semantic=sem)
+
+
+def semantic_label(sem: config_lib.SemanticConfig) -> str:
+  """How tables and logs name a run's guidance."""
+  if not sem.enabled:
+    return "vanilla 3DGS"
+  variant = ("" if sem.weighting == "visibility"
+             else f", {sem.weighting}-weighted accumulation")
+  if sem.scorer == "oracle":
+    return ("CLIP-GS machinery, ORACLE scorer (ground-truth masks, not CLIP)"
+            + variant)
+  return f"CLIP-GS ({sem.clip_variant}{variant})"
+
+
+def write_semantic_logs(workdir: str, cfg: config_lib.Config,
+                        result: train.FitResult) -> dict:
+  """scores.jsonl and prune_events.json; returns metrics.json's block."""
+  def write_lines(tmp):
+    with open(tmp, "w") as f:
+      for row in result.scores:
+        f.write(json.dumps(row) + "\n")
+  checkpoint.atomic_write(os.path.join(workdir, "scores.jsonl"), write_lines,
+                          ".jsonl")
+  checkpoint.write_json(os.path.join(workdir, "prune_events.json"), {
+      "scorer": cfg.semantic.scorer,
+      "histogram_edges": guidance.histogram_edges(cfg.semantic),
+      "events": result.prune_events})
+  state = result.state
+  block = guidance.summarize(result.prune_events,
+                             int(jax.device_get(state.alive.sum())),
+                             state.semantic)
+  return {"scorer": cfg.semantic.scorer,
+          "label": semantic_label(cfg.semantic),
+          "num_scored_steps": len(result.scores), **block}
 
 
 def main(argv):
@@ -133,13 +235,16 @@ def main(argv):
   run = {"scene": os.path.abspath(scene_path), "embedded_scene": embedded,
          "downscale": _DOWNSCALE.value, "train_split": _TRAIN_SPLIT.value,
          "preset": _PRESET.value, "lpips_net": _LPIPS_NET.value,
+         "guidance": semantic_label(cfg.semantic),
          "argv": sys.argv}
   checkpoint.write_json(os.path.join(workdir, "run.json"), run)
   checkpoint.write_json(os.path.join(workdir, "config.json"),
                         config_lib.to_dict(cfg))
 
-  result = train.fit(cfg, scene, workdir, resume=_RESUME.value,
-                     progress=True)
+  scorer = guidance.make_scorer(cfg.semantic, scene,
+                                clip_weights=_CLIP_WEIGHTS.value)
+  result = train.fit(cfg, scene, workdir, scorer=scorer,
+                     resume=_RESUME.value, progress=True)
   state = result.state
   test = evaluate.test_metrics(
       state.params, state.alive, scene.test, cfg, _LPIPS_NET.value,
@@ -169,6 +274,8 @@ def main(argv):
                  f"{jax.default_backend()}",
       "finished": datetime.datetime.now().isoformat(timespec="seconds"),
   }
+  if cfg.semantic.enabled:
+    metrics["semantic"] = write_semantic_logs(workdir, cfg, result)
   checkpoint.write_json(os.path.join(workdir, "metrics.json"), metrics)
   logging.info("test PSNR %.3f  SSIM %.4f  LPIPS(%s) %.4f  train %.1f s  "
                "%d Gaussians", test["psnr"], test["ssim"], test["lpips_net"],

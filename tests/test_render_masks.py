@@ -1,0 +1,186 @@
+"""Tests for experiments/render.py: transient-mask selection, IoU, renders."""
+
+import dataclasses
+import json
+import os
+import pathlib
+import sys
+
+from absl import app
+import jax.numpy as jnp
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+
+from clipgs_jax import checkpoint
+from clipgs_jax import config as config_lib
+from clipgs_jax import densify
+from clipgs_jax import train
+from clipgs_jax.data import default_scene
+from clipgs_jax.data import scene as scene_lib
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] /
+                       "experiments"))
+import render  # pylint: disable=g-import-not-at-top,wrong-import-position
+
+DOWNSCALE = 4      # the embedded scene's 128x96 views become 32x24
+HIGH, LOW = 0.02, 0.01   # s_j of the flagged / other Gaussians; tau 0.015
+
+
+def _read_u8(path):
+  """uint8 [H, W, channels] exactly as stored."""
+  inp = oiio.ImageInput.open(str(path))
+  assert inp is not None, path
+  try:
+    spec = inp.spec()
+    pixels = inp.read_image(0, 0, 0, spec.nchannels, "uint8")
+  finally:
+    inp.close()
+  return np.asarray(pixels).reshape(spec.height, spec.width, spec.nchannels)
+
+
+def test_select_transient():
+  stats = densify.SemanticStats(acc=jnp.array([0.02, 0.01, 0.05, 0.0]),
+                                n=jnp.array([1.0, 1.0, 2.0, 0.0]))
+  alive = np.array([True, True, False, True])
+  # s = [0.02, 0.01, 0.025, 0 (n = 0)]; slot 2 is dead.
+  np.testing.assert_array_equal(
+      render.select_transient(stats, alive, 0.015),
+      [True, False, False, False])
+  # tau below 0 would take never-scored slots; 0 does not.
+  np.testing.assert_array_equal(render.select_transient(stats, alive, 0.0),
+                                [True, True, False, False])
+
+
+def test_mask_iou():
+  alpha = np.array([[0.2, 0.6], [0.5, 0.9]], np.float32)
+  mask = np.array([[False, True], [True, False]])
+  # pred = alpha > 0.5 = [[F, T], [F, T]] (0.5 is not above): 1 / 3.
+  assert render.mask_iou(alpha, mask) == pytest.approx(1 / 3)
+  assert render.mask_iou(alpha, alpha > 0.5) == 1.0
+  # Nothing predicted, something true: 0.
+  assert render.mask_iou(np.zeros((2, 2)), mask) == 0.0
+  # Both empty: undefined.
+  assert render.mask_iou(np.zeros((2, 2)), np.zeros((2, 2), bool)) is None
+  with pytest.raises(ValueError, match="mask_iou"):
+    render.mask_iou(np.zeros((2, 3)), mask)
+
+
+def test_iou_summary_skips_empty_unions():
+  alphas = np.array([[[0.9, 0.0]], [[0.0, 0.0]], [[0.9, 0.9]]])
+  masks = np.array([[[True, True]], [[False, False]], [[True, False]]])
+  out = render.iou_summary(["a", "b", "c"], alphas, masks)
+  # a: 1/2, b: empty union, c: 1/2 -> mean 0.5 over 2 views.
+  assert out["per_view"] == {"a": 0.5, "b": None, "c": 0.5}
+  assert out["mean"] == 0.5
+  assert out["num_views_scored"] == 2
+  assert out["alpha_threshold"] == 0.5
+  assert render.iou_summary(["b"], alphas[1:2], masks[1:2])["mean"] is None
+
+
+@pytest.fixture(scope="module")
+def saved_run(tmp_path_factory):
+  """A run folder as experiments/train.py writes it, without training.
+
+  The first half of the slots get s_j = HIGH > tau, the rest LOW.
+  """
+  workdir = tmp_path_factory.mktemp("run")
+  scene_path = default_scene.ensure_default_scene()
+  scene = scene_lib.load_scene(scene_path, downscale=DOWNSCALE)
+  cfg = train.resolve(config_lib.preset("smoke"), scene)
+  state = train.initial_state(cfg, scene)
+  c = state.capacity
+  high = jnp.arange(c) < c // 2
+  state = state.replace(semantic=densify.SemanticStats(
+      acc=jnp.where(high, HIGH, LOW).astype(jnp.float32),
+      n=jnp.ones((c,), jnp.float32)))
+  checkpoint.save(str(workdir / train.CHECKPOINT_NAME), state, cfg, extra={})
+  checkpoint.write_json(str(workdir / "run.json"), {
+      "scene": os.path.abspath(scene_path), "embedded_scene": True,
+      "downscale": DOWNSCALE, "train_split": "clutter", "preset": "smoke"})
+  checkpoint.write_json(str(workdir / "config.json"), config_lib.to_dict(cfg))
+  checkpoint.write_json(str(workdir / "metrics.json"),
+                        {"test": {"psnr": 12.5}})
+  expected = int(np.sum(np.asarray(state.alive & high)))
+  return workdir, scene, expected
+
+
+def _check_pngs(folder, scene, channels):
+  names = sorted(os.listdir(folder))
+  stems = sorted(os.path.splitext(n)[0] + ".png" for n in scene.train.names)
+  assert names == stems
+  h, w = scene.train.images.shape[1:3]
+  pngs = [_read_u8(folder / n) for n in names]
+  for p in pngs:
+    assert p.shape == (h, w, channels) and p.dtype == np.uint8
+  return dict(zip(names, pngs))
+
+
+def test_render_masks_writes_pngs_and_iou(saved_run):
+  workdir, scene, expected = saved_run
+  assert expected > 0
+  block = render.render_masks(str(workdir))
+  pngs = _check_pngs(workdir / "renders" / "masks", scene, 1)
+  assert max(int(p.max()) for p in pngs.values()) > 0
+  with open(workdir / "metrics.json") as f:
+    metrics = json.load(f)
+  assert metrics["test"] == {"psnr": 12.5}      # kept
+  assert metrics["mask_iou"] == block
+  assert block["tau"] == 0.015
+  assert block["num_gaussians_above_tau"] == expected
+  assert set(block["per_view"]) == set(scene.train.names)
+  assert 0 < block["num_views_scored"] <= len(scene.train.names)
+  assert 0.0 <= block["mean"] <= 1.0
+  scored = [v for v in block["per_view"].values() if v is not None]
+  assert len(scored) == block["num_views_scored"]
+  assert all(np.isfinite(scored))
+
+
+def test_render_masks_nothing_above_tau(saved_run):
+  workdir, scene, _ = saved_run
+  block = render.render_masks(str(workdir), tau=1.0)
+  pngs = _check_pngs(workdir / "renders" / "masks", scene, 1)
+  assert all(int(p.max()) == 0 for p in pngs.values())
+  has_transient = scene.train.masks.any(axis=(1, 2))
+  # Empty prediction: IoU 0 where the mask has transients, else undefined.
+  for name, has in zip(scene.train.names, has_transient):
+    assert block["per_view"][name] == (0.0 if has else None)
+  assert block["num_views_scored"] == int(has_transient.sum())
+  assert block["mean"] == 0.0
+  assert block["num_gaussians_above_tau"] == 0
+  assert block["tau"] == 1.0
+
+
+def test_render_rgb(saved_run):
+  workdir, scene, _ = saved_run
+  render.render_rgb(str(workdir))
+  pngs = _check_pngs(workdir / "renders" / "train", scene, 3)
+  assert max(int(p.max()) for p in pngs.values()) > 0
+
+
+def test_bad_workdir(tmp_path):
+  missing = tmp_path / "nope"
+  with pytest.raises(app.UsageError, match="not a folder"):
+    render.render_masks(str(missing))
+  with pytest.raises(app.UsageError, match="run.json is missing"):
+    render.render_masks(str(tmp_path))
+  checkpoint.write_json(str(tmp_path / "run.json"), {})
+  checkpoint.write_json(str(tmp_path / "config.json"), {})
+  with pytest.raises(app.UsageError, match="checkpoint.npz is missing"):
+    render.render_rgb(str(tmp_path))
+
+
+def test_render_masks_without_ground_truth(saved_run, monkeypatch):
+  workdir, scene, _ = saved_run
+  load_run = render.evaluate.load_run
+
+  def without_masks(path):
+    run, cfg, loaded = load_run(path)
+    train_views = dataclasses.replace(loaded.train, masks=None)
+    return run, cfg, dataclasses.replace(loaded, train=train_views)
+
+  monkeypatch.setattr(render.evaluate, "load_run", without_masks)
+  before = (workdir / "metrics.json").read_text()
+  assert render.render_masks(str(workdir), tau=1.0) is None
+  _check_pngs(workdir / "renders" / "masks", scene, 1)
+  assert (workdir / "metrics.json").read_text() == before
