@@ -6,6 +6,7 @@
 
 Times, in one process on the same state and views, the jitted train step
   vanilla       guidance off (the step experiments/train.py runs by default)
+  off           --semantic=clip with no distractor prompts: disabled
   oracle        oracle scorer, scoring every step, opacity loss on
   clip/k=K      CLIP scorer (random weights: timing only), scoring every
                 K-th step, opacity loss on
@@ -71,7 +72,11 @@ def main(argv):
   clip_config = model.get_config(_CLIP_VARIANT.value)
   clip_params = (clip_config,
                  model.init_params(clip_config, jax.random.key(0)))
-  variants = {"vanilla": (base, None)}
+  # "off": guidance configured but disabled (no distractor prompts); the
+  # same program as vanilla, timed to show it costs the same.
+  off = dataclasses.replace(base, semantic=dataclasses.replace(
+      base.semantic, scorer="clip", distractor_prompts=()))
+  variants = {"vanilla": (base, None), "off": (off, None)}
   sem = dataclasses.replace(base.semantic, scorer="oracle",
                             accumulate_start=0, reg_start=0)
   if scene.train.masks is not None:

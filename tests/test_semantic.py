@@ -41,6 +41,17 @@ class AccumulateTest(parameterized.TestCase):
     np.testing.assert_allclose(out.acc, [0.02, 0.03, 0.0], rtol=1e-6)
     np.testing.assert_allclose(out.n, [1.0, 3.0, 5.0])
 
+  def test_contribution_weighted(self):
+    stats = _stats([0.0, 0.01], [0.0, 2.0])
+    weight = jnp.array([30.0, 0.5])        # blending-weight sums in the view
+    out = semantic.accumulate(stats, weight, jnp.float32(0.7), beta=0.1)
+    # gain 0.02: acc = [0 + 30 * 0.02, 0.01 + 0.5 * 0.02] = [0.6, 0.02];
+    # n = [30, 2.5]; s_j = acc / n = [0.02, 0.008].
+    np.testing.assert_allclose(out.acc, [0.6, 0.02], rtol=1e-6)
+    np.testing.assert_allclose(out.n, [30.0, 2.5])
+    np.testing.assert_allclose(semantic.normalized_scores(out),
+                               [0.02, 0.008], rtol=1e-6)
+
   @parameterized.named_parameters(("zero", 0.0, 0.0), ("neutral", 0.5, 0.0),
                                   ("one", 1.0, 0.05))
   def test_extreme_scores(self, score, gain):
