@@ -19,6 +19,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "experiments"))
 # pylint: disable-next=g-import-not-at-top,wrong-import-position
 import make_transient_benchmark as bench
+from test_colmap import _pose  # pylint: disable=g-bad-import-order
 
 DATA = ROOT.parent / "shared" / "data"
 WIDTH, HEIGHT = 64, 48
@@ -40,15 +41,10 @@ def _write_source(root, num=NUM_VIEWS, cam=("PINHOLE", (50.0, 51.0, 32, 24))):
   pixels = {}
   for image_id in range(1, num + 1):
     name = f"view_{(7 * image_id) % num:02d}.png"
-    az = 2 * np.pi * image_id / num
-    eye = np.array([3 * np.cos(az), 3 * np.sin(az), 1.0])
-    z = -eye / np.linalg.norm(eye)
-    x = np.cross(z, [0, 0, 1.0])
-    x /= np.linalg.norm(x)
-    rot = np.stack([x, np.cross(z, x), z])
+    rot, trans = _pose(image_id, num)
     rec.add_image_with_trivial_frame(
         pycolmap.Image(name=name, camera_id=1, image_id=image_id),
-        pycolmap.Rigid3d(pycolmap.Rotation3d(rot), -rot @ eye))
+        pycolmap.Rigid3d(pycolmap.Rotation3d(rot), trans))
     path = os.path.join(root, "images", name)
     images.write_png(path, rng.random((HEIGHT, WIDTH, 3)))
     pixels[name] = images.read_image(path)      # exactly as stored
