@@ -241,8 +241,11 @@ def main(argv):
   checkpoint.write_json(os.path.join(workdir, "config.json"),
                         config_lib.to_dict(cfg))
 
-  scorer = guidance.make_scorer(cfg.semantic, scene,
-                                clip_weights=_CLIP_WEIGHTS.value)
+  try:
+    scorer = guidance.make_scorer(cfg.semantic, scene,
+                                  clip_weights=_CLIP_WEIGHTS.value)
+  except (ValueError, FileNotFoundError) as e:
+    raise app.UsageError(f"--semantic={cfg.semantic.scorer}: {e}") from e
   result = train.fit(cfg, scene, workdir, scorer=scorer,
                      resume=_RESUME.value, progress=True)
   state = result.state
