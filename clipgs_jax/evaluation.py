@@ -1,7 +1,7 @@
 """Test-set evaluation of a Gaussian model: renders and image metrics."""
 
 import functools
-from typing import Any
+from typing import Any, Iterator
 
 import jax
 import jax.numpy as jnp
@@ -18,8 +18,24 @@ from clipgs_jax.data import scene as scene_lib
 def _render_fn(render_cfg: config_lib.RenderConfig):
   def fn(params, alive, cam, bg, degree):
     out = rasterize.render(params, alive, cam, bg, render_cfg, degree)
-    return jnp.clip(out.image, 0.0, 1.0)
+    return jnp.clip(out.image, 0.0, 1.0), out.alpha, out.num_overflow
   return jax.jit(fn)
+
+
+def renders(params: gaussians.GaussianParams, alive, views,
+            cfg: config_lib.Config) -> Iterator[tuple[jax.Array, ...]]:
+  """Renders each view of `views` with all SH bands on cfg.train.background.
+
+  Yields:
+    (float32 [H, W, 3] colour clipped to [0, 1], float32 [H, W] alpha,
+    int32 [] tile-list entries dropped) per view, in order.
+  """
+  render = _render_fn(cfg.render)
+  bg = jnp.asarray(cfg.train.background, jnp.float32)
+  degree = jnp.asarray(params.sh_degree, jnp.int32)
+  cams = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), views.cameras)
+  for i in range(len(views.images)):
+    yield render(params, alive, scene_lib.camera_at(cams, i), bg, degree)
 
 
 @functools.lru_cache(maxsize=None)
@@ -44,19 +60,13 @@ def evaluate(params: gaussians.GaussianParams, alive, views,
     psnr_only), their means "mean/<name>", and "images" (float32
     [V, H, W, 3] numpy) when keep_images.
   """
-  render = _render_fn(cfg.render)
-  bg = jnp.asarray(cfg.train.background, jnp.float32)
-  degree = jnp.asarray(params.sh_degree, jnp.int32)
-  cams = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), views.cameras)
-  num = len(views.images)
   per_image: dict[str, list[float]] = {"psnr": []}
   if not psnr_only:
     per_image["ssim"] = []
     if lpips_net is not None:
       per_image["lpips"] = []
   images = []
-  for i in range(num):
-    pred = render(params, alive, scene_lib.camera_at(cams, i), bg, degree)
+  for i, (pred, _, _) in enumerate(renders(params, alive, views, cfg)):
     target = jnp.asarray(views.images[i], jnp.float32)
     if psnr_only:
       values = {"psnr": metrics_lib.psnr(pred, target)}
@@ -71,5 +81,6 @@ def evaluate(params: gaussians.GaussianParams, alive, views,
     result[f"mean/{name}"] = float(np.mean(vals)) if vals else float("nan")
   if keep_images:
     result["images"] = (np.stack(images) if images else
-                        np.zeros((0, cams.height, cams.width, 3), np.float32))
+                        np.zeros((0, views.cameras.height,
+                                  views.cameras.width, 3), np.float32))
   return result

@@ -20,7 +20,6 @@ the mask are both empty), "num_views_scored", "alpha_threshold", "tau",
 left out of the mean. Every file is written atomically.
 """
 
-import functools
 import json
 import os
 import sys
@@ -28,18 +27,16 @@ import sys
 from absl import app
 from absl import flags
 from absl import logging
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from clipgs_jax import checkpoint
 from clipgs_jax import config as config_lib
 from clipgs_jax import densify
-from clipgs_jax import rasterize
+from clipgs_jax import evaluation
 from clipgs_jax import semantic
 from clipgs_jax import train
 from clipgs_jax.data import images as images_lib
-from clipgs_jax.data import scene as scene_lib
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import evaluate  # pylint: disable=g-import-not-at-top,wrong-import-position
@@ -146,35 +143,21 @@ def load(workdir: str):
   return cfg, scene, state
 
 
-@functools.lru_cache(maxsize=None)
-def _render_fn(render_cfg: config_lib.RenderConfig):
-  def fn(params, alive, cam, bg, degree):
-    out = rasterize.render(params, alive, cam, bg, render_cfg, degree)
-    return jnp.clip(out.image, 0.0, 1.0), out.alpha, out.num_overflow
-  return jax.jit(fn)
-
-
 def render_views(params, alive, views, cfg: config_lib.Config):
   """Colour and alpha of every view, all SH bands, cfg.train.background.
 
   Returns:
     (float32 [V, H, W, 3] colour in [0, 1], float32 [V, H, W] alpha).
   """
-  render = _render_fn(cfg.render)
-  bg = jnp.asarray(cfg.train.background, jnp.float32)
-  degree = jnp.asarray(params.sh_degree, jnp.int32)
-  cams = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), views.cameras)
   colours, alphas, overflow = [], [], 0
-  for i in range(len(views)):
-    image, alpha, dropped = render(params, alive,
-                                   scene_lib.camera_at(cams, i), bg, degree)
+  for image, alpha, dropped in evaluation.renders(params, alive, views, cfg):
     colours.append(np.asarray(image))
     alphas.append(np.asarray(alpha))
     overflow += int(dropped)
   if overflow:
     logging.warning("%d tile-list entries dropped over %d views; raise "
                     "RenderConfig.tile_budget for exact renders.", overflow,
-                    len(views))
+                    len(colours))
   return np.stack(colours), np.stack(alphas)
 
 

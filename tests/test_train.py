@@ -79,7 +79,8 @@ def synthetic_scene(num=48, size=32, num_train=8, num_test=2, seed=0):
   render = evaluation._render_fn(TEST_CFG.render)
   images = np.stack([
       np.asarray(render(params, alive, scene_lib.camera_at(stacked, i),
-                        jnp.zeros(3), jnp.int32(0))) for i in range(total)])
+                        jnp.zeros(3), jnp.int32(0))[0])
+      for i in range(total)])
 
   def views(idx):
     return Views(cameras=jax.tree.map(lambda x: x[idx], stacked),
