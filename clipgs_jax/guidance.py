@@ -117,6 +117,17 @@ def make_scorer(sem: config_lib.SemanticConfig, scene, *,
                           clip_params=clip_params)
 
 
+def check_scorer(sem: config_lib.SemanticConfig, scorer, caller: str
+                 ) -> None:
+  """Raises unless a scorer is given exactly when `sem` is enabled."""
+  if (scorer is not None) != sem.enabled:
+    raise ValueError(
+        f"{caller}: semantic scorer {sem.scorer!r} with "
+        f"{len(sem.distractor_prompts)} distractor prompts "
+        f"{'needs a' if sem.enabled else 'takes no'} scorer; build it with "
+        "guidance.make_scorer(cfg.semantic, scene).")
+
+
 def scores_due(step: jax.Array, sem: config_lib.SemanticConfig) -> jax.Array:
   """bool []: the step that starts at `step` finished steps scores its view."""
   since = step - sem.accumulate_start

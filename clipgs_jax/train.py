@@ -37,6 +37,9 @@ _BACKGROUND_STREAM = 2
 _DENSIFY_STREAM = 3
 
 CHECKPOINT_NAME = "checkpoint.npz"
+# Guided steps' metrics that fit logs per step (scores.jsonl), not at log
+# steps.
+_PER_STEP_KEYS = guidance.SCORE_KEYS + ("view",)
 
 
 @flax.struct.dataclass
@@ -157,10 +160,7 @@ def train_step(state: TrainState, batch: Batch, scorer=None, *,
     scorer: None, or a guidance scorer (frozen; never differentiated).
     cfg: the config (static).
   """
-  if (scorer is not None) != cfg.semantic.enabled:
-    raise ValueError(f"train_step: semantic scorer {cfg.semantic.scorer!r} "
-                     f"{'needs' if cfg.semantic.enabled else 'takes no'} "
-                     "scorer argument (see guidance.make_scorer).")
+  guidance.check_scorer(cfg.semantic, scorer, "train.train_step")
   num_views, height, width = batch.images.shape[:3]
   step = state.step
   view = view_index(state.key, step, num_views)
@@ -355,12 +355,7 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
   """
   cfg = resolve(cfg, scene)
   guidance.validate(cfg.semantic)
-  if (scorer is not None) != cfg.semantic.enabled:
-    raise ValueError(
-        f"train.fit: semantic scorer {cfg.semantic.scorer!r} with "
-        f"{len(cfg.semantic.distractor_prompts)} distractor prompts "
-        f"{'needs a' if cfg.semantic.enabled else 'takes no'} scorer; build "
-        "it with guidance.make_scorer(cfg.semantic, scene).")
+  guidance.check_scorer(cfg.semantic, scorer, "train.fit")
   os.makedirs(workdir, exist_ok=True)
   ckpt_path = os.path.join(workdir, CHECKPOINT_NAME)
   batch = make_batch(scene.train)
@@ -431,8 +426,8 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
     for step in range(start + 1, end + 1):   # `step` = steps done after
       state, last_metrics = step_fn(state, batch, scorer)
       if scorer is not None:
-        pending.append((step - 1, {k: last_metrics[k] for k in
-                                   guidance.SCORE_KEYS + ("view",)}))
+        pending.append((step - 1, {k: last_metrics[k]
+                                   for k in _PER_STEP_KEYS}))
       if bar is not None:
         bar.update(1)
       # Evaluate the result of the optimisation steps, before this step's
@@ -467,7 +462,7 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
         flush_scores()
         values = {k: float(v) for k, v in
                   jax.device_get(last_metrics).items()
-                  if k not in guidance.SCORE_KEYS + ("view",)}
+                  if k not in _PER_STEP_KEYS}
         if last_info is not None:
           values.update({k: float(v) for k, v in
                          jax.device_get(last_info).items()})
