@@ -118,7 +118,7 @@ class SemanticConfig:
   score_every: int = 1         # score every k-th step (paper: 1)
   weighting: str = "visibility"  # paper: a visible Gaussian gains the view's
   #   score once; "contribution": weighted by its blending-weight sum in the
-  #   view (n_j then counts pixel weight, not views; see semantic.accumulate)
+  #   view (n_j still counts views; see semantic.accumulate)
   clip_variant: str = "ViT-B/32"  # frozen tower; 224x224 resized input
   oracle_saturation: float = 0.1  # transient area fraction that scores 1.0
 

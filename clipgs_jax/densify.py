@@ -58,16 +58,20 @@ class SemanticStats:
   """CLIP-GS per-Gaussian distractor statistics (DESIGN.md steps 4-5).
 
   Attributes:
-    acc: float [C], accumulated beta * max(0, s_hat_d - 0.5).
-    n: float [C], number of views in which the Gaussian contributed.
+    acc: float [C], accumulated weight * beta * max(0, s_hat_d - 0.5).
+    weight: float [C], accumulated weight; s_j = acc / weight. Equal to n
+      under the paper's visibility weighting.
+    n: float [C], number of scored views in which the Gaussian contributed
+      (the n_j of the eq. 13 visibility rule, whatever the weighting).
   """
   acc: Any
+  weight: Any
   n: Any
 
   @classmethod
   def zeros(cls, capacity: int) -> "SemanticStats":
     z = lambda: jnp.zeros((capacity,), jnp.float32)
-    return cls(acc=z(), n=z())
+    return cls(acc=z(), weight=z(), n=z())
 
 
 def apply_rows(state, *, params_fn: Callable, alive_fn: Callable,

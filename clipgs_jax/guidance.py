@@ -144,7 +144,8 @@ def opacity_regularizer(stats: densify.SemanticStats,
 
 
 def score_and_accumulate(stats: densify.SemanticStats, image: jax.Array,
-                         weight: jax.Array, view: jax.Array,
+                         visible: jax.Array, weight: jax.Array | None,
+                         view: jax.Array,
                          step: jax.Array, scorer,
                          sem: config_lib.SemanticConfig
                          ) -> tuple[densify.SemanticStats,
@@ -155,10 +156,11 @@ def score_and_accumulate(stats: densify.SemanticStats, image: jax.Array,
   scores are NaN, which `semantic.accumulate` treats as "no view".
 
   Args:
-    stats: per-row acc and n.
+    stats: per-row acc, weight and n.
     image: float [H, W, 3], the render used for the photometric loss.
-    weight: bool [C] visibility or float [C] contribution of each Gaussian
-      to the render (sem.weighting; see semantic.accumulate).
+    visible: bool [C], the Gaussians that contributed to the render.
+    weight: None (visibility weighting) or float [C], each Gaussian's
+      contribution to the render (sem.weighting; see semantic.accumulate).
     view: int32 [], the training view's index.
     step: int32 [], finished steps before this one.
     scorer: an object with `score(image, view)` (see module docstring).
@@ -173,7 +175,8 @@ def score_and_accumulate(stats: densify.SemanticStats, image: jax.Array,
       lambda: {k: jnp.asarray(v, jnp.float32)
                for k, v in scorer.score(image, view).items()},
       lambda: skipped)
-  stats = semantic.accumulate(stats, weight, scores["s_hat_d"], sem.beta)
+  stats = semantic.accumulate(stats, visible, scores["s_hat_d"], sem.beta,
+                              weight)
   return stats, scores
 
 

@@ -43,23 +43,25 @@ def _check_score(score) -> None:
     raise ValueError(f"s_hat_d must be a finite score in [0, 1], got {value}.")
 
 
-def accumulate(stats: densify.SemanticStats, weight: jax.Array,
-               s_hat_d: jax.Array, beta: float) -> densify.SemanticStats:
-  """Eqs. 8-9: acc += weight * beta * max(0, s_hat_d - 0.5), n += weight.
+def accumulate(stats: densify.SemanticStats, visible: jax.Array,
+               s_hat_d: jax.Array, beta: float,
+               weight: jax.Array | None = None) -> densify.SemanticStats:
+  """Eqs. 8-9: acc += w * beta * max(0, s_hat_d - 0.5), weight += w, n += v.
 
-  With the paper's weight, the visibility v_j (bool), every visible Gaussian
-  gains the view's score once and counts one view, and s_j = acc / n is the
-  mean score of the views that saw it. A float weight (the Gaussian's
+  With the paper's weight w = v_j (visibility, the default), every visible
+  Gaussian gains the view's score once and s_j = acc / weight is the mean
+  score of the views that saw it. A float weight (the Gaussian's
   blending-weight sum in the view, SemanticConfig.weighting =
-  "contribution") makes s_j the contribution-weighted mean instead.
+  "contribution") makes s_j the contribution-weighted mean instead. n
+  always counts views, so eq. 13's n_min keeps its meaning.
 
   Args:
-    stats: per-row acc and n, float [C].
-    weight: bool or float [C] >= 0; the rasterizer's per-Gaussian visibility
-      (a non-zero blending weight on some pixel) or contribution; dead
-      slots have none.
+    stats: per-row acc, weight and n, float [C].
+    visible: bool [C], the rasterizer's per-Gaussian visibility (a non-zero
+      blending weight on some pixel); dead slots have none.
     s_hat_d: float [], the view's normalised distractor score.
     beta: accumulation rate (paper: 0.1).
+    weight: float [C] >= 0 or None (= visible).
   Returns:
     The updated statistics. A non-finite score (possible only under jit,
     where it cannot raise) leaves the statistics unchanged.
@@ -67,14 +69,18 @@ def accumulate(stats: densify.SemanticStats, weight: jax.Array,
   _check_score(s_hat_d)
   ok = jnp.isfinite(s_hat_d)
   gain = beta * jnp.maximum(0.0, jnp.where(ok, s_hat_d, 0.0) - NEUTRAL_SCORE)
-  w = jnp.where(ok, weight.astype(stats.acc.dtype), 0.0)
-  return stats.replace(acc=stats.acc + gain * w, n=stats.n + w)
+  dtype = stats.acc.dtype
+  v = jnp.where(ok, visible.astype(dtype), 0.0)
+  w = v if weight is None else jnp.where(ok, weight.astype(dtype), 0.0)
+  return stats.replace(acc=stats.acc + gain * w, weight=stats.weight + w,
+                       n=stats.n + v)
 
 
 def normalized_scores(stats: densify.SemanticStats) -> jax.Array:
-  """Eq. 10: s_j = acc_j / n_j, and 0 where n_j = 0."""
-  seen = stats.n > 0
-  return jnp.where(seen, stats.acc / jnp.where(seen, stats.n, 1.0), 0.0)
+  """Eq. 10: s_j = acc_j / weight_j (= n_j for visibility), 0 unseen."""
+  seen = stats.weight > 0
+  return jnp.where(seen, stats.acc / jnp.where(seen, stats.weight, 1.0),
+                   0.0)
 
 
 def opacity_loss(stats: densify.SemanticStats, opacity_logits: jax.Array,
@@ -122,5 +128,5 @@ def oracle_score(mask: jax.Array, saturation: float) -> jax.Array:
 
 
 def state_bytes(stats: densify.SemanticStats) -> int:
-  """Bytes of the per-slot semantic arrays (two float32 per slot)."""
+  """Bytes of the per-slot semantic arrays (three float32 per slot)."""
   return int(sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(stats)))

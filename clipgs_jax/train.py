@@ -213,10 +213,11 @@ def train_step(state: TrainState, batch: Batch, scorer=None, *,
   semantic_stats = state.semantic
   if scorer is not None:
     metrics["semantic_loss"] = terms["semantic_loss"]
-    weight = (out.visible if cfg.semantic.weighting == "visibility"
+    weight = (None if cfg.semantic.weighting == "visibility"
               else out.contribution)
     semantic_stats, scores = guidance.score_and_accumulate(
-        state.semantic, out.image, weight, view, step, scorer, cfg.semantic)
+        state.semantic, out.image, out.visible, weight, view, step, scorer,
+        cfg.semantic)
     metrics.update(scores, view=view)
   new_state = state.replace(params=params, opt_state=opt_state,
                             densify=stats, semantic=semantic_stats,

@@ -33,6 +33,7 @@ def _state(capacity=16, seed=0):
           lambda x: jnp.asarray(rng.normal(size=x.shape), x.dtype)),
       semantic=densify.SemanticStats(
           acc=jnp.asarray(rng.random(capacity), jnp.float32),
+          weight=jnp.asarray(rng.random(capacity), jnp.float32),
           n=jnp.arange(capacity, dtype=jnp.float32)),
       step=jnp.int32(1234))
   return state

@@ -36,7 +36,8 @@ def _tag_state(state, tags):
                              lambda x: x.at[_first(x)].set(tags))
   return state.replace(
       params=params, opt_state=opt_state,
-      semantic=densify.SemanticStats(acc=tags, n=tags + 0.0))
+      semantic=densify.SemanticStats(acc=tags, weight=tags + 0.0,
+                                     n=tags + 0.0))
 
 
 def _row_leaves(state):
@@ -123,6 +124,7 @@ class RowAlignmentTest(absltest.TestCase):
             self.assertEqual(m.flat[0], tag)
           self.assertEqual(after.semantic.acc[r], tag)
           self.assertEqual(after.semantic.n[r], tag)
+          self.assertEqual(after.semantic.weight[r], tag)
           chex.assert_trees_all_equal(
               jax.tree.map(lambda x: x[r], after.params),
               jax.tree.map(lambda x: x[r], before.params))
@@ -130,6 +132,7 @@ class RowAlignmentTest(absltest.TestCase):
           num_new += 1
           self.assertTrue(all(np.all(m == 0) for m in row_moments))
           self.assertEqual(after.semantic.acc[r], 0)
+          self.assertEqual(after.semantic.weight[r], 0)
           self.assertEqual(after.semantic.n[r], 0)
           parent = tag_of[int(tag)]
           self.assertTrue(r == parent or not before.alive[r])

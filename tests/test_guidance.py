@@ -40,6 +40,7 @@ def _state_with_stats(acc, n, opacity, alive):
       params=state.params.replace(
           opacity_logits=jnp.asarray(logits, jnp.float32)),
       semantic=densify.SemanticStats(acc=jnp.asarray(acc, jnp.float32),
+                                     weight=jnp.asarray(n, jnp.float32),
                                      n=jnp.asarray(n, jnp.float32)))
 
 
@@ -116,23 +117,24 @@ class ScorerTest(absltest.TestCase):
     masks = np.zeros((1, 2, 2), bool)
     masks[0, 0, 0] = True                       # f = 0.25
     scorer = guidance.OracleScorer(masks=jnp.asarray(masks), saturation=0.5)
-    stats = densify.SemanticStats(acc=jnp.zeros(3), n=jnp.zeros(3))
+    stats = densify.SemanticStats.zeros(3)
     visible = jnp.array([True, False, True])
     image = jnp.zeros((2, 2, 3))
-    fn = jax.jit(guidance.score_and_accumulate, static_argnums=(6,))
+    fn = jax.jit(guidance.score_and_accumulate, static_argnums=(7,))
     # Step 2: before accumulate_start -> unchanged, NaN scores.
-    out, scores = fn(stats, image, visible, jnp.int32(0), jnp.int32(2),
+    out, scores = fn(stats, image, visible, None, jnp.int32(0), jnp.int32(2),
                      scorer, sem)
     chex.assert_trees_all_equal(out, stats)
     self.assertTrue(np.isnan(scores["s_hat_d"]))
     # Step 3: s_hat_d = 0.5 + 0.5 * 0.25 / 0.5 = 0.75; gain 0.1 * 0.25.
-    out, scores = fn(stats, image, visible, jnp.int32(0), jnp.int32(3),
+    out, scores = fn(stats, image, visible, None, jnp.int32(0), jnp.int32(3),
                      scorer, sem)
     self.assertAlmostEqual(float(scores["s_hat_d"]), 0.75, places=6)
     np.testing.assert_allclose(out.acc, [0.025, 0.0, 0.025], rtol=1e-6)
     np.testing.assert_array_equal(out.n, [1, 0, 1])
     # Step 4: off cadence (score_every 2) -> unchanged.
-    out4, _ = fn(out, image, visible, jnp.int32(0), jnp.int32(4), scorer, sem)
+    out4, _ = fn(out, image, visible, None, jnp.int32(0), jnp.int32(4),
+                 scorer, sem)
     chex.assert_trees_all_equal(out4, out)
 
 
@@ -208,9 +210,9 @@ class PruneTest(parameterized.TestCase):
       state = _tag_state(state, tags)
       n = np.where(rng.random(64) < 0.2, 1.0, 2.0 * tags)
       acc = np.where(n == 1.0, tags, 0.0)
+      n = jnp.asarray(np.where(host.alive, n, 0.0), jnp.float32)
       state = state.replace(semantic=densify.SemanticStats(
-          acc=jnp.asarray(acc, jnp.float32),
-          n=jnp.asarray(np.where(host.alive, n, 0.0), jnp.float32)))
+          acc=jnp.asarray(acc, jnp.float32), weight=n, n=n))
       before = jax.device_get(state)
       state, info = prune_fn(state)
       after = jax.device_get(state)

@@ -40,8 +40,9 @@ def _read_u8(path):
 
 
 def test_select_transient():
+  n = jnp.array([1.0, 1.0, 2.0, 0.0])
   stats = densify.SemanticStats(acc=jnp.array([0.02, 0.01, 0.05, 0.0]),
-                                n=jnp.array([1.0, 1.0, 2.0, 0.0]))
+                                weight=n, n=n)
   alive = np.array([True, True, False, True])
   # s = [0.02, 0.01, 0.025, 0 (n = 0)]; slot 2 is dead.
   np.testing.assert_array_equal(
@@ -93,7 +94,7 @@ def saved_run(tmp_path_factory):
   high = jnp.arange(c) < c // 2
   state = state.replace(semantic=densify.SemanticStats(
       acc=jnp.where(high, HIGH, LOW).astype(jnp.float32),
-      n=jnp.ones((c,), jnp.float32)))
+      weight=jnp.ones((c,), jnp.float32), n=jnp.ones((c,), jnp.float32)))
   checkpoint.save(str(workdir / train.CHECKPOINT_NAME), state, cfg, extra={})
   checkpoint.write_json(str(workdir / "run.json"), {
       "scene": os.path.abspath(scene_path), "embedded_scene": True,

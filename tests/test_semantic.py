@@ -9,9 +9,12 @@ from clipgs_jax import densify
 from clipgs_jax import semantic
 
 
-def _stats(acc, n):
-  return densify.SemanticStats(acc=jnp.asarray(acc, jnp.float32),
-                               n=jnp.asarray(n, jnp.float32))
+def _stats(acc, n, weight=None):
+  """Statistics; weight defaults to n (visibility weighting)."""
+  n = jnp.asarray(n, jnp.float32)
+  return densify.SemanticStats(
+      acc=jnp.asarray(acc, jnp.float32),
+      weight=n if weight is None else jnp.asarray(weight, jnp.float32), n=n)
 
 
 class ScoreTest(parameterized.TestCase):
@@ -40,17 +43,23 @@ class AccumulateTest(parameterized.TestCase):
     # gain = 0.1 * (0.7 - 0.5) = 0.02 for visible rows only.
     np.testing.assert_allclose(out.acc, [0.02, 0.03, 0.0], rtol=1e-6)
     np.testing.assert_allclose(out.n, [1.0, 3.0, 5.0])
+    np.testing.assert_allclose(out.weight, out.n)
 
   def test_contribution_weighted(self):
-    stats = _stats([0.0, 0.01], [0.0, 2.0])
-    weight = jnp.array([30.0, 0.5])        # blending-weight sums in the view
-    out = semantic.accumulate(stats, weight, jnp.float32(0.7), beta=0.1)
-    # gain 0.02: acc = [0 + 30 * 0.02, 0.01 + 0.5 * 0.02] = [0.6, 0.02];
-    # n = [30, 2.5]; s_j = acc / n = [0.02, 0.008].
-    np.testing.assert_allclose(out.acc, [0.6, 0.02], rtol=1e-6)
-    np.testing.assert_allclose(out.n, [30.0, 2.5])
+    stats = _stats([0.0, 0.01, 0.0], [0.0, 1.0, 4.0],
+                   weight=[0.0, 2.0, 7.0])
+    visible = jnp.array([True, True, False])
+    weight = jnp.array([30.0, 0.5, 0.0])   # blending-weight sums in the view
+    out = semantic.accumulate(stats, visible, jnp.float32(0.7), beta=0.1,
+                              weight=weight)
+    # gain 0.02: acc = [0 + 30 * 0.02, 0.01 + 0.5 * 0.02, 0] = [0.6, 0.02,
+    # 0]; weight = [30, 2.5, 7]; s_j = acc / weight = [0.02, 0.008, 0]; n
+    # still counts views: [1, 2, 4].
+    np.testing.assert_allclose(out.acc, [0.6, 0.02, 0.0], rtol=1e-6)
+    np.testing.assert_allclose(out.weight, [30.0, 2.5, 7.0])
+    np.testing.assert_allclose(out.n, [1.0, 2.0, 4.0])
     np.testing.assert_allclose(semantic.normalized_scores(out),
-                               [0.02, 0.008], rtol=1e-6)
+                               [0.02, 0.008, 0.0], rtol=1e-6)
 
   @parameterized.named_parameters(("zero", 0.0, 0.0), ("neutral", 0.5, 0.0),
                                   ("one", 1.0, 0.05))
@@ -73,6 +82,7 @@ class AccumulateTest(parameterized.TestCase):
         _stats([0.1], [2.0]), jnp.array([True]), s, beta=0.1))
     out = f(jnp.float32(np.nan))
     np.testing.assert_allclose(out.acc, [0.1])
+    np.testing.assert_allclose(out.weight, [2.0])
     np.testing.assert_allclose(out.n, [2.0])
 
 
@@ -127,6 +137,15 @@ class NormalizeLossPruneTest(parameterized.TestCase):
     with self.assertRaisesRegex(ValueError, "saturation"):
       semantic.oracle_score(mask, 0.0)
 
-  def test_two_float32_per_slot(self):
+  def test_prune_counts_views_not_weight(self):
+    # Contribution weighting: a faint row with a large pixel-weight sum but
+    # few views is still "rarely seen" (n counts views, not weight).
+    stats = _stats([0.0, 0.0], [3.0, 30.0], weight=[500.0, 0.2])
+    logits = jnp.full((2,), -3.0)                        # alpha ~ 0.05
+    _, vis = semantic.prune_masks(stats, logits, jnp.ones(2, bool),
+                                  tau=0.015, n_min=10, alpha_min=0.1)
+    np.testing.assert_array_equal(vis, [True, False])
+
+  def test_three_float32_per_slot(self):
     self.assertEqual(semantic.state_bytes(densify.SemanticStats.zeros(1000)),
-                     8000)
+                     12000)
