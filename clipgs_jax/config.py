@@ -107,7 +107,8 @@ class SemanticConfig:
   distractor_prompts: tuple[str, ...] = PAPER_DISTRACTOR_PROMPTS  # D
   static_prompts: tuple[str, ...] = PAPER_STATIC_PROMPTS  # S, logged only
   beta: float = 0.1            # accumulation rate (eq. 8)
-  lambda_c: float = 0.01       # CLIP opacity loss weight (eq. 11)
+  lambda_c: float = 0.01       # CLIP opacity loss weight (eq. 11; 0: off)
+  prune: bool = True           # eq. 13 pruning (False: an ablation)
   tau: float = 0.015           # prune when s_j > tau (eq. 13)
   n_min: float = 10.0          # ... or n_j < n_min and alpha_j < alpha_min;
   alpha_min: float = 0.1       #     n_min is divided by score_every

@@ -71,6 +71,9 @@ def validate(sem: config_lib.SemanticConfig) -> None:
     problems.append(f"beta={sem.beta} must be positive")
   if not sem.lambda_c >= 0:
     problems.append(f"lambda_c={sem.lambda_c} must be >= 0")
+  if sem.enabled and sem.lambda_c == 0 and not sem.prune:
+    problems.append("lambda_c=0 with prune off leaves guidance nothing to "
+                    "do; use scorer='off' for vanilla 3DGS")
   for name in ("accumulate_start", "reg_start", "prune_start"):
     if getattr(sem, name) < 0:
       problems.append(f"{name}={getattr(sem, name)} must be >= 0")
@@ -189,8 +192,8 @@ def prune_due(step: int, cfg: config_lib.Config) -> bool:
   """
   sem = cfg.semantic
   since = step - sem.prune_start
-  return (sem.enabled and 0 < step < cfg.train.steps and since >= 0
-          and since % sem.prune_every == 0)
+  return (sem.enabled and sem.prune and 0 < step < cfg.train.steps
+          and since >= 0 and since % sem.prune_every == 0)
 
 
 def prune(state, *, cfg: config_lib.Config):

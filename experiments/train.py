@@ -7,7 +7,7 @@
       [--semantic=off|clip|oracle] [--distractor_prompts=P1,P2,...]
       [--static_prompts=...] [--tau=T] [--clip_weights=PATH]
       [--score_every=K] [--semantic_weighting=visibility|contribution]
-      [--scale_semantic_schedule]
+      [--lambda_c=L] [--nosemantic_prune] [--scale_semantic_schedule]
 
 Without --scene, the embedded default scene
 (data.default_scene.ensure_default_scene()) is used, with
@@ -127,6 +127,12 @@ _SEMANTIC_WEIGHTING = flags.DEFINE_enum(
     "visibility: the paper's accumulation (each visible Gaussian gains the "
     "view's score once); contribution: weighted by the Gaussian's blending "
     "weight in the view (a measured variant, see BUILD_NOTES.md).")
+_LAMBDA_C = flags.DEFINE_float(
+    "lambda_c", None, "CLIP opacity loss weight (paper: 0.01; 0 turns the "
+    "loss off: the prune-only ablation).")
+_SEMANTIC_PRUNE = flags.DEFINE_bool(
+    "semantic_prune", True, "Eq. 13 pruning; --nosemantic_prune is the "
+    "opacity-loss-only ablation.")
 _SCALE_SEMANTIC_SCHEDULE = flags.DEFINE_bool(
     "scale_semantic_schedule", False, "Scale the paper's semantic schedule "
     "(500/2000/5000/1000 of 20k steps) to --steps, for short runs.")
@@ -166,7 +172,9 @@ def config_from_flags(embedded: bool) -> config_lib.Config:
       cfg.semantic, scorer=_SEMANTIC.value,
       distractor_prompts=tuple(_DISTRACTOR_PROMPTS.value),
       static_prompts=tuple(_STATIC_PROMPTS.value),
-      weighting=_SEMANTIC_WEIGHTING.value)
+      weighting=_SEMANTIC_WEIGHTING.value, prune=_SEMANTIC_PRUNE.value)
+  if _LAMBDA_C.value is not None:
+    sem = dataclasses.replace(sem, lambda_c=_LAMBDA_C.value)
   if _TAU.value is not None:
     sem = dataclasses.replace(sem, tau=_TAU.value)
   if _SCORE_EVERY.value is not None:
@@ -186,6 +194,10 @@ def semantic_label(sem: config_lib.SemanticConfig) -> str:
     return "vanilla 3DGS"
   variant = ("" if sem.weighting == "visibility"
              else f", {sem.weighting}-weighted accumulation")
+  if sem.lambda_c == 0:
+    variant += ", no opacity loss"
+  if not sem.prune:
+    variant += ", no pruning"
   if sem.scorer == "oracle":
     return ("CLIP-GS machinery, ORACLE scorer (ground-truth masks, not CLIP)"
             + variant)

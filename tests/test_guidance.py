@@ -65,6 +65,11 @@ class ScheduleTest(parameterized.TestCase):
         scorer="clip", distractor_prompts=()))
     self.assertFalse(no_prompts.semantic.enabled)
     self.assertFalse(guidance.prune_due(5000, no_prompts))
+    # The opacity-loss-only ablation never prunes.
+    reg_only = dataclasses.replace(cfg, semantic=config.SemanticConfig(
+        scorer="oracle", prune=False))
+    self.assertFalse(any(guidance.prune_due(s, reg_only)
+                         for s in range(20_001)))
 
   def test_scaled_schedule(self):
     sem = config.SemanticConfig().scaled_to(2000)

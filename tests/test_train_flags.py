@@ -20,7 +20,11 @@ class SemanticFlagsTest(parameterized.TestCase):
        "do not exist"),
       ("tau", ["--semantic=oracle", "--tau=2"], "tau=2.0 is not in [0, 1]"),
       ("cadence", ["--semantic=oracle", "--score_every=0"],
-       "score_every=0 must be >= 1"))
+       "score_every=0 must be >= 1"),
+      ("nothing_to_do", ["--semantic=oracle", "--lambda_c=0",
+                         "--nosemantic_prune"], "leaves guidance nothing"),
+      ("lambda_c", ["--semantic=oracle", "--lambda_c=-1"],
+       "lambda_c=-1.0 must be >= 0"))
   def test_bad_flags(self, flags, message):
     env = dict(os.environ, PYTHONPATH=str(ROOT),
                CLIPGS_CLIP_WEIGHTS="")
