@@ -240,6 +240,20 @@ def format_markdown(rows: list[dict], settings: dict) -> str:
   return "\n".join(lines) + "\n"
 
 
+def machine_and_date() -> dict:
+  """The "machine" and "date" settings every benchmark output names."""
+  return {"machine": f"{platform.node()}, {os.cpu_count()} cpus",
+          "date": datetime.datetime.now().isoformat(timespec="seconds")}
+
+
+def write_text(path: str, text: str) -> None:
+  """Writes `text` to `path` atomically."""
+  def write(tmp):
+    with open(tmp, "w") as f:
+      f.write(text)
+  checkpoint.atomic_write(path, write, os.path.splitext(path)[1])
+
+
 def _log_tail(path: str, n: int = LOG_TAIL_LINES) -> str:
   try:
     with open(path, errors="replace") as f:
@@ -326,19 +340,14 @@ def run_table(benchmarks: list[str], workroot: str, steps: int, *,
       "semantic_weighting": weighting, "lpips_net": lpips_net,
       "extra_flags": extra_flags or "(none)",
       "clip_weights": clip_weights or "(none: no clip row)",
-      "machine": f"{platform.node()}, {os.cpu_count()} cpus",
-      "date": datetime.datetime.now().isoformat(timespec="seconds"),
+      **machine_and_date(),
   }
   out = out or workroot
   os.makedirs(out, exist_ok=True)
   checkpoint.write_json(os.path.join(out, "table.json"),
                         {"settings": settings, "rows": rows})
   text = format_markdown(rows, settings)
-
-  def write_md(tmp):
-    with open(tmp, "w") as f:
-      f.write(text)
-  checkpoint.atomic_write(os.path.join(out, "table.md"), write_md, ".md")
+  write_text(os.path.join(out, "table.md"), text)
   logging.info("wrote %s\n%s", os.path.join(out, "table.md"), text)
   return rows
 

@@ -1,0 +1,274 @@
+"""Paper figures from a benchmark table: a render grid and error curves.
+
+  python experiments/figures.py --workroot=DIR --benchmarks=DIR[,DIR...]
+      --out=DIR [--views=3] [--downscale=K]
+
+For each benchmark (a RobustNeRF-layout scene from
+make_transient_benchmark.py) the runs of experiments/table.py are read from
+workroot/<benchmark basename>/<row>/ and two PNGs are written into --out:
+  <scene>_grid.png   rows: --views test views, evenly spaced over the
+                     sorted test names; columns: the nearest cluttered
+                     training view (by camera centre), the render of each
+                     row present (vanilla, oracle, clip, clean) with its
+                     PSNR against the ground truth, and the ground truth.
+  <scene>_curve.png  test error against training time of the rows present
+                     (experiments/plot_curve.py).
+The oracle row scores views with ground-truth masks; it is labelled as an
+ORACLE scorer, never as CLIP. The views are loaded with load_scene at the
+runs' downscale (run.json), the exact data they were evaluated on.
+"""
+
+import json
+import os
+import sys
+
+from absl import app
+from absl import flags
+from absl import logging
+import numpy as np
+
+import matplotlib
+matplotlib.use("Agg")   # files only; no display on the training machines
+import matplotlib.pyplot as plt  # pylint: disable=g-import-not-at-top,wrong-import-position
+
+from clipgs_jax import checkpoint  # pylint: disable=g-import-not-at-top,wrong-import-position
+from clipgs_jax.data import images  # pylint: disable=g-import-not-at-top,wrong-import-position
+from clipgs_jax.data import scene as scene_lib  # pylint: disable=g-import-not-at-top,wrong-import-position
+import plot_curve  # pylint: disable=g-import-not-at-top,wrong-import-position
+
+FLAGS = flags.FLAGS
+
+ROWS = ("vanilla", "oracle", "clip", "clean")
+LABELS = {
+    "vanilla": "vanilla 3DGS",
+    "oracle": "CLIP-GS (ORACLE scorer)",
+    "clip": "CLIP-GS (CLIP)",
+    "clean": "clean upper bound",
+}
+INPUT_TITLE = "input (nearest training view, with transients)"
+PANEL_INCHES = 2.4
+
+
+def _define_flags() -> None:
+  # Defined only when run as a script, so that tests can import this module.
+  flags.DEFINE_string("workroot", None, "table.py's workroot: runs in "
+                      "workroot/<scene>/<row>.")
+  flags.DEFINE_list("benchmarks", None, "Benchmark scene folders.")
+  flags.DEFINE_string("out", None, "Folder for the PNGs.")
+  flags.DEFINE_integer("views", 3, "Test views (grid rows) per benchmark.")
+  flags.DEFINE_integer("downscale", None, "Image downscale of the renders "
+                       "(default: the runs' run.json).")
+  flags.mark_flags_as_required(["workroot", "benchmarks", "out"])
+
+
+def camera_centres(cameras) -> np.ndarray:
+  """float64 [V, 3] world centres -R^T t of stacked cameras ([V] axis)."""
+  rot = np.asarray(cameras.rotation, np.float64).reshape(-1, 3, 3)
+  trans = np.asarray(cameras.translation, np.float64).reshape(-1, 3)
+  return -np.einsum("vji,vj->vi", rot, trans)
+
+
+def nearest_train_view(test_cam, train_cams) -> int:
+  """Index of the training camera whose centre is nearest test_cam's.
+
+  Args:
+    test_cam: camera.Camera, one view (unbatched fields).
+    train_cams: camera.Camera with a leading [V] axis (Views.cameras).
+
+  Returns:
+    int in [0, V).
+  """
+  centre = camera_centres(test_cam)[0]
+  dist = np.linalg.norm(camera_centres(train_cams) - centre, axis=-1)
+  return int(np.argmin(dist))
+
+
+def view_psnr(a: np.ndarray, b: np.ndarray) -> float:
+  """PSNR in dB (peak 1) of two images of one shape; inf when equal."""
+  a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+  if a.shape != b.shape:
+    raise ValueError(f"view_psnr: shapes differ, {a.shape} vs {b.shape}.")
+  mse = float(np.mean(np.square(a - b)))
+  return float("inf") if mse == 0 else -10.0 * float(np.log10(mse))
+
+
+def pick_views(num_views: int, count: int) -> list[int]:
+  """`count` indices evenly spaced over range(num_views), first and last."""
+  if count < 1:
+    raise ValueError(f"views must be positive, got {count}.")
+  count = min(count, num_views)
+  return sorted({int(round(x))
+                 for x in np.linspace(0, num_views - 1, count)})
+
+
+def present_rows(scene_runs: str) -> list[str]:
+  """The rows of ROWS with a folder in scene_runs; ValueError when none."""
+  rows = [r for r in ROWS if os.path.isdir(os.path.join(scene_runs, r))]
+  if not rows:
+    raise ValueError(f"figures: no row folder ({', '.join(ROWS)}) in "
+                     f"{scene_runs}; run experiments/table.py first or fix "
+                     "--workroot.")
+  for r in ROWS:
+    if r not in rows and r != "clip":
+      logging.warning("figures: %s is missing; no %s column or curve.",
+                      os.path.join(scene_runs, r), r)
+  return rows
+
+
+def runs_downscale(scene_runs: str, rows: list[str]) -> int:
+  """The downscale of the rows' run.json files; they must agree."""
+  found = {}
+  for r in rows:
+    try:
+      with open(os.path.join(scene_runs, r, "run.json")) as f:
+        found[r] = int(json.load(f)["downscale"])
+    except (OSError, ValueError, KeyError, TypeError):
+      logging.warning("figures: no downscale in %s/%s/run.json", scene_runs,
+                      r)
+  if not found:
+    raise ValueError(f"figures: no run.json with a downscale in the rows of "
+                     f"{scene_runs}; pass --downscale.")
+  if len(set(found.values())) > 1:
+    raise ValueError(f"figures: the rows of {scene_runs} differ in "
+                     f"downscale {found}; their renders are not comparable.")
+  return next(iter(found.values()))
+
+
+def _panel(ax, image, title, xlabel=None):
+  ax.imshow(np.clip(image, 0, 1), interpolation="nearest")
+  ax.set_title(title, fontsize=7)
+  if xlabel:
+    ax.set_xlabel(xlabel, fontsize=8)
+  ax.set_xticks([])
+  ax.set_yticks([])
+
+
+def make_grid(bench: str, scene_runs: str, out_path: str, views: int = 3,
+              downscale: int | None = None) -> dict:
+  """Writes the render grid of one benchmark, atomically.
+
+  Args:
+    bench: str, the benchmark scene folder.
+    scene_runs: str, workroot/<scene>, holding the row folders.
+    out_path: str, the PNG to write.
+    views: int, number of test views (grid rows).
+    downscale: int or None, image downscale (None: the rows' run.json).
+
+  Returns:
+    dict with "rows" (the render columns drawn, in order), "titles" (all
+    column titles) and "views": per grid row {"test", "input", "psnr":
+    {row: dB}}.
+  """
+  rows = present_rows(scene_runs)
+  downscale = downscale or runs_downscale(scene_runs, rows)
+  scene = scene_lib.load_scene(bench, downscale=downscale,
+                               train_split="clutter")
+  test, train = scene.test, scene.train
+  order = np.argsort(test.names)
+  picked = [int(order[i]) for i in pick_views(len(order), views)]
+  renders = {r: {} for r in rows}
+  for r in rows:
+    for i in picked:
+      stem = os.path.splitext(os.path.basename(test.names[i]))[0]
+      path = os.path.join(scene_runs, r, "renders", "test", stem + ".png")
+      if not os.path.isfile(path):
+        logging.warning("figures: render %s is missing; %s column left out.",
+                        path, r)
+        renders[r] = None
+        break
+      image = images.read_image(path)
+      if image.shape != test.images[i].shape:
+        raise ValueError(
+            f"figures: {path} is {image.shape[1]}x{image.shape[0]} but the "
+            f"test view at downscale {downscale} is {test.images[i].shape[1]}"
+            f"x{test.images[i].shape[0]}; pass the runs' --downscale.")
+      renders[r][i] = image
+  cols = [r for r in rows if renders[r] is not None]
+  titles = [INPUT_TITLE] + [LABELS[r] for r in cols] + ["ground truth"]
+  h, w = test.images.shape[1:3]
+  fig, axes = plt.subplots(
+      len(picked), len(titles), squeeze=False, dpi=150,
+      figsize=(PANEL_INCHES * len(titles),
+               (PANEL_INCHES * h / w + 0.6) * len(picked)))
+  summary = {"rows": cols, "titles": titles, "views": []}
+  for k, i in enumerate(picked):
+    gt = test.images[i]
+    j = nearest_train_view(scene_lib.camera_at(test.cameras, i),
+                           train.cameras)
+    head = (lambda t: t + "\n") if k == 0 else (lambda t: "")
+    _panel(axes[k, 0], train.images[j], head(INPUT_TITLE) + train.names[j])
+    view = {"test": test.names[i], "input": train.names[j], "psnr": {}}
+    for c, r in enumerate(cols, 1):
+      view["psnr"][r] = view_psnr(renders[r][i], gt)
+      _panel(axes[k, c], renders[r][i], head(LABELS[r]).rstrip(),
+             f"PSNR {view['psnr'][r]:.2f} dB")
+    _panel(axes[k, -1], gt, head("ground truth") + test.names[i])
+    summary["views"].append(view)
+  fig.tight_layout()
+  try:
+    checkpoint.atomic_write(out_path, fig.savefig, ".png")
+  finally:
+    plt.close(fig)
+  logging.info("figures: wrote %s", out_path)
+  return summary
+
+
+def make_curve(scene_runs: str, out_path: str) -> list[str]:
+  """Writes the error-against-time plot of the rows with a curve.json.
+
+  Returns:
+    list of the rows plotted (empty, and no file written, when none has a
+    curve.json).
+  """
+  rows, paths = [], []
+  for r in present_rows(scene_runs):
+    path = os.path.join(scene_runs, r, "curve.json")
+    if os.path.isfile(path):
+      rows.append(r)
+      paths.append(path)
+    else:
+      logging.warning("figures: %s is missing; no %s curve.", path, r)
+  if not rows:
+    logging.warning("figures: no curve.json in %s; no curve plot.",
+                    scene_runs)
+    return []
+  plot_curve.plot(paths, out_path, [LABELS[r] for r in rows])
+  logging.info("figures: wrote %s", out_path)
+  return rows
+
+
+def make_figures(benchmarks: list[str], workroot: str, out: str,
+                 views: int = 3, downscale: int | None = None) -> list[str]:
+  """Grid and curve PNGs of every benchmark; returns the paths written."""
+  written = []
+  for bench in benchmarks:
+    name = os.path.basename(os.path.normpath(bench))
+    scene_runs = os.path.join(workroot, name)
+    grid = os.path.join(out, f"{name}_grid.png")
+    make_grid(bench, scene_runs, grid, views, downscale)
+    written.append(grid)
+    curve = os.path.join(out, f"{name}_curve.png")
+    if make_curve(scene_runs, curve):
+      written.append(curve)
+  return written
+
+
+def main(argv):
+  if len(argv) > 1:
+    raise app.UsageError(f"unexpected arguments {argv[1:]}")
+  if FLAGS.views < 1:
+    raise app.UsageError(f"--views must be positive, got {FLAGS.views}.")
+  for b in FLAGS.benchmarks:
+    if not os.path.isdir(b):
+      raise app.UsageError(f"benchmark {b} is not a folder.")
+  try:
+    written = make_figures(FLAGS.benchmarks, FLAGS.workroot, FLAGS.out,
+                           FLAGS.views, FLAGS.downscale)
+  except ValueError as e:
+    sys.exit(str(e))
+  print("\n".join(written))
+
+
+if __name__ == "__main__":
+  _define_flags()
+  app.run(main)
