@@ -27,14 +27,14 @@ from absl import flags
 from absl import logging
 import numpy as np
 
-import matplotlib
+from clipgs_jax import checkpoint
+from clipgs_jax.data import images
+from clipgs_jax.data import scene as scene_lib
+import plot_curve  # experiments/, on sys.path as the script's folder
+
+import matplotlib  # pylint: disable=g-bad-import-order
 matplotlib.use("Agg")   # files only; no display on the training machines
 import matplotlib.pyplot as plt  # pylint: disable=g-import-not-at-top,wrong-import-position
-
-from clipgs_jax import checkpoint  # pylint: disable=g-import-not-at-top,wrong-import-position
-from clipgs_jax.data import images  # pylint: disable=g-import-not-at-top,wrong-import-position
-from clipgs_jax.data import scene as scene_lib  # pylint: disable=g-import-not-at-top,wrong-import-position
-import plot_curve  # pylint: disable=g-import-not-at-top,wrong-import-position
 
 FLAGS = flags.FLAGS
 
