@@ -37,6 +37,9 @@ _BACKGROUND_STREAM = 2
 _DENSIFY_STREAM = 3
 
 CHECKPOINT_NAME = "checkpoint.npz"
+# A semantic prune that removes more than this share of the alive
+# Gaussians logs a warning: tau is below the scene's static scores.
+PRUNE_WARN_FRACTION = 0.5
 # Guided steps' metrics that fit logs per step (scores.jsonl), not at log
 # steps.
 _PER_STEP_KEYS = guidance.SCORE_KEYS + ("view",)
@@ -451,6 +454,14 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
                   "(rarely seen, faint) of %d", step,
                   event["num_pruned_semantic"],
                   event["num_pruned_visibility"], event["num_alive_before"])
+        removed = event["num_pruned_semantic"] + event["num_pruned_visibility"]
+        if removed > PRUNE_WARN_FRACTION * event["num_alive_before"]:
+          _log.warning(
+              "step %d: the semantic prune removed %d of %d Gaussians; tau "
+              "= %g is below the scores of most of the scene (every view "
+              "scoring alike, as when all training views are cluttered, "
+              "does that). Calibrate it: experiments/calibrate_tau.py.",
+              step, removed, event["num_alive_before"], cfg.semantic.tau)
       do_densify, do_reset = densify.due(step, cfg)
       if do_densify:
         state = _grow_if_needed(state, cfg)

@@ -303,6 +303,27 @@ class WiredStepTest(absltest.TestCase):
     self.assertEqual(again.prune_events, result.prune_events)
     self.assertNotIn("clipgs_jax.clip.scorer", sys.modules)
 
+  def test_prune_of_most_of_the_scene_warns(self):
+    # Every view cluttered and tau = 0: every scored Gaussian exceeds tau,
+    # the situation of a fully cluttered benchmark (BUILD_NOTES, issue 6).
+    scene = _masked_scene()
+    scene = dataclasses.replace(scene, train=dataclasses.replace(
+        scene.train, masks=np.ones_like(scene.train.masks)))
+    sem = config.SemanticConfig(
+        scorer="oracle", accumulate_start=0, reg_start=0, prune_start=20,
+        prune_every=20, tau=0.0)
+    cfg = dataclasses.replace(TEST_CFG, semantic=sem,
+                              train=dataclasses.replace(TEST_CFG.train,
+                                                        steps=21))
+    with self.assertLogs("clipgs_jax.train", "WARNING") as logs:
+      result = train.fit(cfg, scene, self.create_tempdir().full_path,
+                         scorer=guidance.make_scorer(sem, scene),
+                         progress=False)
+    event, = result.prune_events
+    self.assertGreater(event["num_pruned_semantic"],
+                       train.PRUNE_WARN_FRACTION * event["num_alive_before"])
+    self.assertIn("Calibrate it", "\n".join(logs.output))
+
   def test_fit_checks_the_scorer(self):
     scene = _masked_scene()
     cfg = dataclasses.replace(TEST_CFG, semantic=ORACLE)
