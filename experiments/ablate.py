@@ -48,7 +48,7 @@ ROWS = {
                      "CLIP: generic prompts"),
     "clean": ("clean", [], "3DGS on clean views (upper bound)"),
 }
-NEEDS_CLIP = "not run: needs --clip_weights (the oracle ignores prompts)"
+NEEDS_CLIP = "needs --clip_weights (the oracle ignores prompts)"
 
 
 def _define_flags() -> None:
@@ -90,10 +90,10 @@ def ablation_row(name: str, metrics: dict | None, error: str | None,
   r = table.collect_row("", base, metrics, error)
   r.update(row=name, method=description)
   ok = r["psnr"] is not None
-  r["delta_psnr"] = (r["psnr"] - vanilla_psnr
-                     if ok and vanilla_psnr is not None else None)
-  r["gap_to_clean"] = (clean_psnr - r["psnr"]
-                       if ok and clean_psnr is not None else None)
+  r["delta_psnr"] = (r["psnr"] - vanilla_psnr if ok and name != "vanilla"
+                     and vanilla_psnr is not None else None)
+  r["gap_to_clean"] = (clean_psnr - r["psnr"] if ok and name != "clean"
+                       and clean_psnr is not None else None)
   return r
 
 
@@ -114,8 +114,8 @@ def format_markdown(rows: list[dict], settings: dict) -> str:
       continue
     lines.append(
         f"| {r['method']} | {fmt(r['psnr'], '.2f')} | "
-        f"{fmt(r['delta_psnr'], '+.2f')} | {fmt(r['gap_to_clean'], '+.2f')}"
-        f" | {fmt(r['ssim'], '.4f')} | {fmt(r['lpips'], '.4f')} | "
+        f"{fmt(r['delta_psnr'], '+.2f', '—')} | "
+        f"{fmt(r['gap_to_clean'], '+.2f', '—')} | {fmt(r['ssim'], '.4f')} | {fmt(r['lpips'], '.4f')} | "
         f"{fmt(r['num_gaussians'], 'd')} | "
         f"{fmt(r['fraction_pruned'], '.3f', '—')} |")
   return "\n".join(lines) + "\n"

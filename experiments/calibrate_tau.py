@@ -159,12 +159,12 @@ def plot_histograms(events_by_tau: dict[float, dict], out_path: str) -> None:
             label=f"first prune (step {e0['step']})")
   for i, (tau, ev) in enumerate(sorted(events_by_tau.items())):
     color = f"C{i}"
-    if ev and ev["events"]:
+    if ev and ev["events"] and sum(ev["events"][-1]["histogram"]) > 0:
       last = ev["events"][-1]
       ax.stairs(last["histogram"], edges, color=color,
                 label=f"tau={tau}: before last prune (step {last['step']})")
     if tau <= edges[-1]:
-      ax.axvline(tau, color=color, linestyle="--")
+      ax.axvline(tau, color=color, linestyle="--", label=f"tau={tau}")
     else:
       ax.annotate(f"tau={tau} > max s_j = {edges[-1]:g}: never reached",
                   (0.98, 0.95 - 0.06 * i), xycoords="axes fraction",
@@ -172,7 +172,8 @@ def plot_histograms(events_by_tau: dict[float, dict], out_path: str) -> None:
   ax.set_yscale("symlog", linthresh=1.0)
   ax.set_xlabel("s_j (normalised distractor score)")
   ax.set_ylabel("alive Gaussians")
-  ax.legend(fontsize=7, loc="upper center")
+  ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.18),
+            ncol=2)
   fig.tight_layout()
   try:
     checkpoint.atomic_write(out_path, fig.savefig, ".png")

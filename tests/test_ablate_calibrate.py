@@ -93,7 +93,8 @@ class AblateTest(absltest.TestCase):
     text = ablate.format_markdown(rows, {"steps": 30})
     self.assertIn("| ORACLE: opacity loss only | 21.50 | +1.50 | +1.50 |",
                   text)
-    self.assertIn("not run: needs --clip_weights", text)
+    self.assertIn("| CLIP: generic prompts | not run: needs --clip_weights", text)
+    self.assertIn("| vanilla 3DGS (clutter) | 20.00 | — | +3.00 |", text)
 
 
 if __name__ == "__main__":
