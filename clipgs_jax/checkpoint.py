@@ -19,7 +19,8 @@ import numpy as np
 from clipgs_jax import config as config_lib
 from clipgs_jax import densify
 
-VERSION = 1
+# 2: SemanticStats gained `weight` (contribution-weighted s_j normaliser).
+VERSION = 2
 _PREFIX = "state/"
 
 

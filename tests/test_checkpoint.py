@@ -105,6 +105,15 @@ class RoundTripTest(absltest.TestCase):
     degree2 = train.init_state(CFG, *gaussians.empty(16, 2))
     with self.assertRaisesRegex(ValueError, "sh_rest is float32"):
       checkpoint.restore(path, degree2)
+    # A checkpoint of an older format (version 1 had no semantic weight).
+    with np.load(path) as data:
+      old = {k: data[k] for k in data.files
+             if k != "state/semantic/weight"}
+    old["meta/version"] = np.asarray(1, np.int32)
+    np.savez(path, **old)
+    with self.assertRaisesRegex(ValueError, "format version 1, this code "
+                                f"reads {checkpoint.VERSION}"):
+      checkpoint.restore(path, _state())
 
 
 class ResumeTest(absltest.TestCase):
