@@ -95,8 +95,12 @@ def validate(cam: Camera, name: str = "camera") -> None:
 
 
 def camera_center(cam: Camera, xnp=np):
-  """float [3], the camera centre in world coordinates, -R^T t."""
-  return -xnp.asarray(cam.rotation).T @ xnp.asarray(cam.translation)
+  """float [..., 3], the camera centre(s) in world coordinates, -R^T t.
+
+  Works on one camera and on cameras stacked along leading axes.
+  """
+  return -xnp.einsum("...ji,...j->...i", xnp.asarray(cam.rotation),
+                     xnp.asarray(cam.translation))
 
 
 def tan_half_fov(cam: Camera, xnp=np):

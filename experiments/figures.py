@@ -27,6 +27,7 @@ from absl import flags
 from absl import logging
 import numpy as np
 
+from clipgs_jax import camera
 from clipgs_jax import checkpoint
 from clipgs_jax.data import images
 from clipgs_jax.data import scene as scene_lib
@@ -61,13 +62,6 @@ def _define_flags() -> None:
   flags.mark_flags_as_required(["workroot", "benchmarks", "out"])
 
 
-def camera_centres(cameras) -> np.ndarray:
-  """float64 [V, 3] world centres -R^T t of stacked cameras ([V] axis)."""
-  rot = np.asarray(cameras.rotation, np.float64).reshape(-1, 3, 3)
-  trans = np.asarray(cameras.translation, np.float64).reshape(-1, 3)
-  return -np.einsum("vji,vj->vi", rot, trans)
-
-
 def nearest_train_view(test_cam, train_cams) -> int:
   """Index of the training camera whose centre is nearest test_cam's.
 
@@ -78,8 +72,8 @@ def nearest_train_view(test_cam, train_cams) -> int:
   Returns:
     int in [0, V).
   """
-  centre = camera_centres(test_cam)[0]
-  dist = np.linalg.norm(camera_centres(train_cams) - centre, axis=-1)
+  centre = camera.camera_center(test_cam)
+  dist = np.linalg.norm(camera.camera_center(train_cams) - centre, axis=-1)
   return int(np.argmin(dist))
 
 

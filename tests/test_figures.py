@@ -45,7 +45,8 @@ class PiecesTest(absltest.TestCase):
     self.assertEqual(figures.nearest_train_view(test, train), 3)
     naive = np.linalg.norm(train.translation - test.translation, axis=-1)
     self.assertEqual(int(np.argmin(naive)), 0)
-    np.testing.assert_allclose(figures.camera_centres(train)[2], [0, 5, 0],
+    # camera_center works on stacked cameras too.
+    np.testing.assert_allclose(camera.camera_center(train)[2], [0, 5, 0],
                                atol=1e-12)
 
   def test_view_psnr(self):

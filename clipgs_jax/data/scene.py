@@ -200,7 +200,7 @@ def _load_masks(scene_path, names, downscale, resize_cache, shape):
 
 
 def _extent(cameras: camera.Camera) -> float:
-  centres = -np.einsum("vji,vj->vi", cameras.rotation, cameras.translation)
+  centres = camera.camera_center(cameras)
   radius = np.linalg.norm(centres - centres.mean(axis=0), axis=-1).max()
   # One camera (or coincident ones) has no spread; use unit scale instead
   # of scaling every learning rate to zero.
