@@ -52,21 +52,14 @@ NEEDS_CLIP = "needs --clip_weights (the oracle ignores prompts)"
 
 
 def _define_flags() -> None:
+  table.define_run_flags()
   flags.DEFINE_string("benchmark", None, "Benchmark scene folder.")
-  flags.DEFINE_string("workroot", None, "Runs go to workroot/<scene>/.")
-  flags.DEFINE_integer("steps", None, "Training steps, every run.")
-  flags.DEFINE_integer("downscale", 1, "Image downscale, every run.")
-  flags.DEFINE_integer("seed", 0, "PRNG seed, every run.")
   flags.DEFINE_float("tau", None, "Prune threshold (default: train.py's).")
-  flags.DEFINE_enum("semantic_weighting", "visibility",
-                    ["visibility", "contribution"], "Accumulation.")
-  flags.DEFINE_enum("lpips_net", "alex", ["alex", "vgg"], "LPIPS backbone.")
   flags.DEFINE_string("clip_weights", None, "CLIP weights: adds the prompt "
                       "rows.")
-  flags.DEFINE_string("extra_flags", "", "More train.py flags, every run.")
   flags.DEFINE_string("out", None, "Output folder (default "
                       "workroot/<scene>).")
-  flags.mark_flags_as_required(["benchmark", "workroot", "steps"])
+  flags.mark_flags_as_required(["benchmark"])
 
 
 def row_flags(name: str, *, tau: float | None, weighting: str,
@@ -126,11 +119,10 @@ def main(argv):
     raise app.UsageError(f"unexpected arguments {argv[1:]}")
   if not os.path.isdir(FLAGS.benchmark):
     raise app.UsageError(f"--benchmark={FLAGS.benchmark} is not a folder.")
-  scene = os.path.basename(os.path.normpath(FLAGS.benchmark))
+  scene = table.scene_name(FLAGS.benchmark)
   root = os.path.join(os.path.abspath(FLAGS.workroot), scene)
   bench = os.path.abspath(FLAGS.benchmark)
-  common = [f"--downscale={FLAGS.downscale}", f"--seed={FLAGS.seed}",
-            f"--lpips_net={FLAGS.lpips_net}"]
+  common = table.common_flags(FLAGS.downscale, FLAGS.seed, FLAGS.lpips_net)
   extra = shlex.split(FLAGS.extra_flags)
   results = {}
   for name in ROWS:

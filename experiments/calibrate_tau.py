@@ -39,6 +39,7 @@ import matplotlib.pyplot as plt  # pylint: disable=g-import-not-at-top,wrong-imp
 import numpy as np  # pylint: disable=g-import-not-at-top,wrong-import-position
 
 from clipgs_jax import checkpoint  # pylint: disable=g-import-not-at-top,wrong-import-position
+import plot_curve  # pylint: disable=g-import-not-at-top,wrong-import-position
 import table  # pylint: disable=g-import-not-at-top,wrong-import-position
 
 FLAGS = flags.FLAGS
@@ -46,22 +47,15 @@ PAPER_TAUS = ("0.3", "0.02", "0.015", "0.01")
 
 
 def _define_flags() -> None:
+  table.define_run_flags()
   flags.DEFINE_string("benchmark", None, "Benchmark scene folder.")
-  flags.DEFINE_string("workroot", None, "Runs go to workroot/<scene>/.")
-  flags.DEFINE_integer("steps", None, "Training steps, every run.")
-  flags.DEFINE_integer("downscale", 1, "Image downscale, every run.")
-  flags.DEFINE_integer("seed", 0, "PRNG seed, every run.")
   flags.DEFINE_list("taus", list(PAPER_TAUS), "Prune thresholds to run.")
   flags.DEFINE_enum("semantic", "oracle", list(table.GUIDED_ROWS),
                     "Scorer of the guided runs.")
   flags.DEFINE_string("clip_weights", None, "CLIP weights (--semantic=clip).")
-  flags.DEFINE_enum("semantic_weighting", "visibility",
-                    ["visibility", "contribution"], "Accumulation.")
-  flags.DEFINE_enum("lpips_net", "alex", ["alex", "vgg"], "LPIPS backbone.")
-  flags.DEFINE_string("extra_flags", "", "More train.py flags, every run.")
   flags.DEFINE_string("out", None, "Output folder (default "
                       "workroot/<scene>).")
-  flags.mark_flags_as_required(["benchmark", "workroot", "steps"])
+  flags.mark_flags_as_required(["benchmark"])
 
 
 def otsu_threshold(histogram, edges) -> float | None:
@@ -174,11 +168,7 @@ def plot_histograms(events_by_tau: dict[float, dict], out_path: str) -> None:
   ax.set_ylabel("alive Gaussians")
   ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.18),
             ncol=2)
-  fig.tight_layout()
-  try:
-    checkpoint.atomic_write(out_path, fig.savefig, ".png")
-  finally:
-    plt.close(fig)
+  plot_curve.save_figure(fig, out_path)
 
 
 def main(argv):
@@ -192,11 +182,10 @@ def main(argv):
     raise app.UsageError(f"--taus must be numbers: {e}") from e
   if FLAGS.semantic == "clip" and not FLAGS.clip_weights:
     raise app.UsageError("--semantic=clip needs --clip_weights.")
-  scene = os.path.basename(os.path.normpath(FLAGS.benchmark))
+  scene = table.scene_name(FLAGS.benchmark)
   root = os.path.join(os.path.abspath(FLAGS.workroot), scene)
   bench = os.path.abspath(FLAGS.benchmark)
-  common = [f"--downscale={FLAGS.downscale}", f"--seed={FLAGS.seed}",
-            f"--lpips_net={FLAGS.lpips_net}"]
+  common = table.common_flags(FLAGS.downscale, FLAGS.seed, FLAGS.lpips_net)
   extra = shlex.split(FLAGS.extra_flags)
   vanilla, error = table.run_row(
       bench, os.path.join(root, "vanilla"), FLAGS.steps,

@@ -28,7 +28,6 @@ from absl import logging
 import numpy as np
 
 from clipgs_jax import camera
-from clipgs_jax import checkpoint
 from clipgs_jax.data import images
 from clipgs_jax.data import scene as scene_lib
 import plot_curve  # experiments/, on sys.path as the script's folder
@@ -198,11 +197,7 @@ def make_grid(bench: str, scene_runs: str, out_path: str, views: int = 3,
              f"PSNR {view['psnr'][r]:.2f} dB")
     _panel(axes[k, -1], gt, head("ground truth") + test.names[i])
     summary["views"].append(view)
-  fig.tight_layout()
-  try:
-    checkpoint.atomic_write(out_path, fig.savefig, ".png")
-  finally:
-    plt.close(fig)
+  plot_curve.save_figure(fig, out_path)
   logging.info("figures: wrote %s", out_path)
   return summary
 

@@ -43,6 +43,15 @@ def _read(path: str) -> list[dict]:
   return curve
 
 
+def save_figure(fig, out_path: str) -> None:
+  """Lays out `fig`, writes it as a PNG atomically and closes it."""
+  fig.tight_layout()
+  try:
+    checkpoint.atomic_write(out_path, fig.savefig, ".png")
+  finally:
+    plt.close(fig)
+
+
 def plot(curve_paths: list[str], out_path: str,
          labels: list[str] | None = None, x: str = "seconds") -> None:
   """Writes the error-against-time plot of the given curves, atomically."""
@@ -66,11 +75,7 @@ def plot(curve_paths: list[str], out_path: str,
   ax.set_ylabel("test MSE = 10^(-PSNR/10)")
   ax.grid(True, which="both", alpha=0.3)
   ax.legend(fontsize=8)
-  fig.tight_layout()
-  try:
-    checkpoint.atomic_write(out_path, fig.savefig, ".png")
-  finally:
-    plt.close(fig)
+  save_figure(fig, out_path)
 
 
 def main(argv):

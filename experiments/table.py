@@ -60,28 +60,46 @@ DEFAULT_LABELS = {
 LOG_TAIL_LINES = 30
 
 
-def _define_flags() -> None:
-  # Defined only when run as a script, so that tests can import this module
-  # next to other experiment modules that define --steps, --tau, ...
-  flags.DEFINE_list("benchmarks", None, "Benchmark scene folders.")
+def define_run_flags() -> None:
+  """The flags of table.py, ablate.py and calibrate_tau.py that set where
+  the rows go and what every train.py row of a benchmark shares."""
   flags.DEFINE_string("workroot", None, "Runs go to workroot/<scene>/<row>.")
   flags.DEFINE_integer("steps", None, "Training steps, every row.")
   flags.DEFINE_integer("downscale", 1, "Image downscale, every row.")
   flags.DEFINE_integer("seed", 0, "PRNG seed, every row.")
-  flags.DEFINE_float("tau", None, "Prune threshold for the guided rows "
-                     "(default: train.py's, the paper's 0.015).")
   flags.DEFINE_enum("semantic_weighting", "visibility",
                     ["visibility", "contribution"],
                     "Accumulation of the guided rows.")
   flags.DEFINE_enum("lpips_net", "alex", ["alex", "vgg"],
                     "LPIPS backbone, every row.")
-  flags.DEFINE_string("clip_weights", None, "CLIP weights; adds the clip "
-                      "row.")
   flags.DEFINE_string("extra_flags", "", "More train.py flags for every "
                       "row, one shell-quoted string.")
+  flags.mark_flags_as_required(["workroot", "steps"])
+
+
+def common_flags(downscale: int, seed: int, lpips_net: str) -> list[str]:
+  """train.py flags every row of a benchmark gets (besides extra_flags)."""
+  return [f"--downscale={downscale}", f"--seed={seed}",
+          f"--lpips_net={lpips_net}"]
+
+
+def scene_name(benchmark: str) -> str:
+  """A benchmark's name: its folder's basename (workroot/<name>/<row>)."""
+  return os.path.basename(os.path.normpath(benchmark))
+
+
+def _define_flags() -> None:
+  # Defined only when run as a script, so that tests can import this module
+  # next to other experiment modules that define --steps, --tau, ...
+  define_run_flags()
+  flags.DEFINE_list("benchmarks", None, "Benchmark scene folders.")
+  flags.DEFINE_float("tau", None, "Prune threshold for the guided rows "
+                     "(default: train.py's, the paper's 0.015).")
+  flags.DEFINE_string("clip_weights", None, "CLIP weights; adds the clip "
+                      "row.")
   flags.DEFINE_string("out", None, "Folder for table.md / table.json "
                       "(default: --workroot).")
-  flags.mark_flags_as_required(["benchmarks", "workroot", "steps"])
+  flags.mark_flags_as_required(["benchmarks"])
 
 
 def row_names(clip_weights: str | None) -> list[str]:
@@ -315,11 +333,10 @@ def run_table(benchmarks: list[str], workroot: str, steps: int, *,
   Returns:
     list of row dicts, as in table.json.
   """
-  names = [os.path.basename(os.path.normpath(b)) for b in benchmarks]
+  names = [scene_name(b) for b in benchmarks]
   if len(set(names)) != len(names):
     raise ValueError(f"benchmark basenames must differ, got {names}.")
-  common = [f"--downscale={downscale}", f"--seed={seed}",
-            f"--lpips_net={lpips_net}"]
+  common = common_flags(downscale, seed, lpips_net)
   extra = shlex.split(extra_flags)
   rows = []
   for bench, name in zip(benchmarks, names):
