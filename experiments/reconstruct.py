@@ -1,0 +1,147 @@
+"""Camera poses and SfM points for a folder of photos, with pycolmap.
+
+  python experiments/reconstruct.py --images=DIR --workdir=DIR
+      [--camera_model=SIMPLE_RADIAL] [--nosingle_camera]
+
+SIFT features, exhaustive matching and *global* mapping (pycolmap's GLOMAP
+pipeline), seeded. Writes DIR/database.db, DIR/sparse/0 and a symlink
+DIR/images -> --images, so DIR is a scene for `train.py --scene=DIR`
+(distorted camera models are undistorted by the loader, as for any scene).
+
+Why global mapping: on the shared 98-frame bonsai orbit, incremental
+mapping folds the loop and returns cameras that look *away* from the
+object they all photograph; global mapping recovers the orbit (numbers in
+BUILD_NOTES.md, "Bonsai poses"). The summary printed at the end says how
+many cameras face the centre of the camera positions, the quick check
+that caught it.
+"""
+
+import os
+import shutil
+import time
+
+from absl import app
+from absl import flags
+from absl import logging
+import numpy as np
+import pycolmap
+
+FLAGS = flags.FLAGS
+
+SEED = 0
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+
+
+def _define_flags() -> None:
+  flags.DEFINE_string("images", None, "Folder of photos.")
+  flags.DEFINE_string("workdir", None, "Output scene folder (must not hold "
+                      "a sparse/ model yet).")
+  flags.DEFINE_string("camera_model", "SIMPLE_RADIAL",
+                      "COLMAP camera model to estimate.")
+  flags.DEFINE_bool("single_camera", True, "One set of intrinsics shared by "
+                    "every photo (one camera, fixed zoom).")
+  flags.mark_flags_as_required(["images", "workdir"])
+
+
+def check_inputs(image_dir: str, workdir: str, camera_model: str) -> list[str]:
+  """Photo names in `image_dir`; ValueError naming the problem otherwise."""
+  if not os.path.isdir(image_dir):
+    raise ValueError(f"--images={image_dir}: no such folder; pass the folder "
+                     "that holds the photos.")
+  names = sorted(n for n in os.listdir(image_dir)
+                 if os.path.splitext(n)[1].lower() in IMAGE_EXTENSIONS)
+  if len(names) < 3:
+    raise ValueError(f"--images={image_dir}: {len(names)} photos "
+                     f"(extensions {sorted(IMAGE_EXTENSIONS)}); "
+                     "structure from motion needs at least 3.")
+  if os.path.exists(os.path.join(workdir, "sparse")):
+    raise ValueError(f"--workdir={workdir} already holds sparse/; delete it "
+                     "or pick another folder.")
+  try:
+    pycolmap.CameraModelId(camera_model)
+  except ValueError:
+    raise ValueError(f"--camera_model={camera_model}: not a COLMAP camera "
+                     "model (e.g. SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, "
+                     "OPENCV).") from None
+  return names
+
+
+def centers_and_axes(rec: pycolmap.Reconstruction):
+  """Camera centres [N, 3] and unit optical axes [N, 3] in world space."""
+  centers, axes = [], []
+  for image in rec.images.values():
+    rotation = image.cam_from_world().rotation.matrix()
+    centers.append(image.projection_center())
+    axes.append(rotation.T @ np.array([0.0, 0.0, 1.0]))
+  return np.asarray(centers), np.asarray(axes)
+
+
+def facing_fraction(centers: np.ndarray, axes: np.ndarray) -> float:
+  """Share of cameras whose optical axis points towards the centre of the
+  camera positions: ~1 for an object-centred orbit, ~0 when it is folded
+  inside out (not meaningful for forward-facing or panorama captures)."""
+  to_mid = centers.mean(axis=0) - centers
+  return float(np.mean(np.sum(axes * to_mid, axis=1) > 0))
+
+
+def reconstruct(image_dir: str, workdir: str, camera_model: str,
+                single_camera: bool) -> pycolmap.Reconstruction:
+  """Runs SfM; the finished model appears at workdir/sparse/0 atomically."""
+  names = check_inputs(image_dir, workdir, camera_model)
+  os.makedirs(workdir, exist_ok=True)
+  db = os.path.join(workdir, "database.db")
+  if os.path.exists(db):
+    os.remove(db)  # A half-built database from an interrupted run.
+  reader = pycolmap.ImageReaderOptions()
+  reader.camera_model = camera_model
+  mode = (pycolmap.CameraMode.SINGLE if single_camera
+          else pycolmap.CameraMode.PER_IMAGE)
+  tic = time.perf_counter()
+  pycolmap.extract_features(db, image_dir, image_names=names,
+                            camera_mode=mode, reader_options=reader)
+  logging.info("features: %.0f s", time.perf_counter() - tic)
+  verification = pycolmap.TwoViewGeometryOptions()
+  verification.ransac.random_seed = SEED
+  pycolmap.match_exhaustive(db, verification_options=verification)
+  logging.info("matching: %.0f s", time.perf_counter() - tic)
+  tmp = os.path.join(workdir, f".tmp-sparse-{os.getpid()}")
+  shutil.rmtree(tmp, ignore_errors=True)
+  os.makedirs(tmp)
+  options = pycolmap.GlobalPipelineOptions()
+  options.random_seed = SEED
+  options.multiple_models = False
+  models = pycolmap.global_mapping(db, image_dir, tmp, options)
+  logging.info("mapping: %.0f s", time.perf_counter() - tic)
+  if not models:
+    shutil.rmtree(tmp, ignore_errors=True)
+    raise RuntimeError(f"pycolmap could not register the photos in "
+                       f"{image_dir} (too few matches between them).")
+  best = max(models, key=lambda k: models[k].num_reg_images())
+  rec = models[best]
+  final = os.path.join(tmp, "final", "0")
+  os.makedirs(final)
+  rec.write(final)
+  os.rename(os.path.join(tmp, "final"), os.path.join(workdir, "sparse"))
+  shutil.rmtree(tmp, ignore_errors=True)
+  link = os.path.join(workdir, "images")
+  if not os.path.lexists(link):
+    os.symlink(os.path.abspath(image_dir), link)
+  return rec
+
+
+def main(argv):
+  del argv
+  rec = reconstruct(FLAGS.images, FLAGS.workdir, FLAGS.camera_model,
+                    FLAGS.single_camera)
+  cams = ", ".join(f"{c.model.name} {np.round(c.params, 4).tolist()}"
+                   for c in rec.cameras.values())
+  print(f"{rec.num_reg_images()} photos registered, {rec.num_points3D()} "
+        f"points, mean reprojection error {rec.compute_mean_reprojection_error():.3f} px; "
+        f"cameras facing the centre of the camera positions: "
+        f"{facing_fraction(*centers_and_axes(rec)):.0%}; cameras: {cams}")
+  print(f"scene ready: python experiments/train.py --scene={FLAGS.workdir}")
+
+
+if __name__ == "__main__":
+  _define_flags()
+  app.run(main)
