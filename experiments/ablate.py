@@ -108,7 +108,8 @@ def format_markdown(rows: list[dict], settings: dict) -> str:
     lines.append(
         f"| {r['method']} | {fmt(r['psnr'], '.2f')} | "
         f"{fmt(r['delta_psnr'], '+.2f', '—')} | "
-        f"{fmt(r['gap_to_clean'], '+.2f', '—')} | {fmt(r['ssim'], '.4f')} | {fmt(r['lpips'], '.4f')} | "
+        f"{fmt(r['gap_to_clean'], '+.2f', '—')} | {fmt(r['ssim'], '.4f')} | "
+        f"{fmt(r['lpips'], '.4f')} | "
         f"{fmt(r['num_gaussians'], 'd')} | "
         f"{fmt(r['fraction_pruned'], '.3f', '—')} |")
   return "\n".join(lines) + "\n"

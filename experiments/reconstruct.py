@@ -116,12 +116,12 @@ def reconstruct(image_dir: str, workdir: str, camera_model: str,
     shutil.rmtree(tmp, ignore_errors=True)
     raise RuntimeError(f"pycolmap could not register the photos in "
                        f"{image_dir} (too few matches between them).")
-  best = max(models, key=lambda k: models[k].num_reg_images())
-  rec = models[best]
-  final = os.path.join(tmp, "final", "0")
-  os.makedirs(final)
-  rec.write(final)
-  os.rename(os.path.join(tmp, "final"), os.path.join(workdir, "sparse"))
+  # multiple_models=False: one model, which the mapper wrote to tmp/<key>.
+  (key, rec), = models.items()
+  staged = os.path.join(tmp, "sparse")
+  os.makedirs(staged)
+  os.rename(os.path.join(tmp, str(key)), os.path.join(staged, "0"))
+  os.rename(staged, os.path.join(workdir, "sparse"))
   shutil.rmtree(tmp, ignore_errors=True)
   link = os.path.join(workdir, "images")
   if not os.path.lexists(link):
@@ -130,14 +130,19 @@ def reconstruct(image_dir: str, workdir: str, camera_model: str,
 
 
 def main(argv):
-  del argv
-  rec = reconstruct(FLAGS.images, FLAGS.workdir, FLAGS.camera_model,
-                    FLAGS.single_camera)
+  if len(argv) > 1:
+    raise app.UsageError(f"unexpected arguments {argv[1:]}")
+  try:
+    rec = reconstruct(FLAGS.images, FLAGS.workdir, FLAGS.camera_model,
+                      FLAGS.single_camera)
+  except ValueError as e:
+    raise app.UsageError(str(e)) from e
   cams = ", ".join(f"{c.model.name} {np.round(c.params, 4).tolist()}"
                    for c in rec.cameras.values())
+  error = rec.compute_mean_reprojection_error()
   print(f"{rec.num_reg_images()} photos registered, {rec.num_points3D()} "
-        f"points, mean reprojection error {rec.compute_mean_reprojection_error():.3f} px; "
-        f"cameras facing the centre of the camera positions: "
+        f"points, mean reprojection error {error:.3f} px; cameras facing "
+        f"the centre of the camera positions: "
         f"{facing_fraction(*centers_and_axes(rec)):.0%}; cameras: {cams}")
   print(f"scene ready: python experiments/train.py --scene={FLAGS.workdir}")
 
