@@ -1,7 +1,6 @@
 """Tests for data/colmap.py: reading, undistortion and bad-input errors."""
 
 import os
-import pathlib
 import shutil
 import struct
 
@@ -11,11 +10,10 @@ import pytest
 
 from clipgs_jax.data import colmap
 from clipgs_jax.data import images
+import shared_data  # tests/, on sys.path under pytest
 
-DATA = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "data"
-needs_data = pytest.mark.skipif(
-    not (DATA / "bird").is_dir(),
-    reason=f"real data not found at {DATA} (a fresh clone has no ../shared)")
+DATA = shared_data.DATA
+needs_data = shared_data.needs_data("bird")
 
 
 def _pose(k, n):

@@ -11,11 +11,10 @@ import pytest
 _REPO = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(_REPO / "experiments"))
 import reconstruct  # pylint: disable=g-import-not-at-top,wrong-import-position
+import shared_data  # tests/, on sys.path under pytest
 
-DATA = _REPO.parent / "shared" / "data"
-needs_data = pytest.mark.skipif(
-    not (DATA / "bird").is_dir(),
-    reason=f"real data not found at {DATA} (a fresh clone has no ../shared)")
+DATA = shared_data.DATA
+needs_data = shared_data.needs_data("bird")
 
 
 def _ring(n, inward):

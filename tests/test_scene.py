@@ -1,7 +1,6 @@
 """Tests for data/scene.py: splits, downscaling, masks and real scenes."""
 
 import os
-import pathlib
 
 import jax
 import jax.numpy as jnp
@@ -13,11 +12,10 @@ from clipgs_jax import camera
 from clipgs_jax.data import colmap
 from clipgs_jax.data import images
 from clipgs_jax.data import scene
+import shared_data  # tests/, on sys.path under pytest
 
-DATA = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "data"
-needs_data = pytest.mark.skipif(
-    not (DATA / "bird").is_dir() or not (DATA / "bonsai").is_dir(),
-    reason=f"real data not found at {DATA} (a fresh clone has no ../shared)")
+DATA = shared_data.DATA
+needs_data = shared_data.needs_data("bird", "bonsai")
 
 
 def write_scene(root, names, cams=((65, 49),), cam_of=None, image_sizes=None,
