@@ -42,6 +42,8 @@ class RenderOutput:
     depth: float [H, W], expected depth sum(w z) / alpha (0 where alpha = 0).
     visible: bool [C], the slot gave a non-zero blending weight to a pixel.
     contribution: float [C], sum over pixels of its blending weights.
+    evidence: float [C], sum over pixels of its blending weights times the
+      evidence map, from the same pass; None when no map was given.
     num_overflow: int32 [], tile-list entries dropped because a tile held
       more than `tile_budget` Gaussians (0 means the render is exact).
     max_tile_count: int32 [], the longest tile list before the budget.
@@ -51,6 +53,7 @@ class RenderOutput:
   depth: Any
   visible: Any
   contribution: Any
+  evidence: Any
   num_overflow: Any
   max_tile_count: Any
 
@@ -89,6 +92,14 @@ def _pixel_centers(grid: _Grid, dtype):
   inside = (x < grid.width) & (y < grid.height)
   centers = np.stack([x + 0.5, y + 0.5], -1).astype(dtype)
   return jnp.asarray(centers), jnp.asarray(inside)
+
+
+def _tile(x: jax.Array, grid: _Grid) -> jax.Array:
+  """[H, W] image to the [T, P] tile layout (padding pixels get 0)."""
+  x = jnp.pad(x, ((0, grid.tiles_y * TILE - grid.height),
+                  (0, grid.tiles_x * TILE - grid.width)))
+  x = x.reshape(grid.tiles_y, TILE, grid.tiles_x, TILE)
+  return jnp.swapaxes(x, 1, 2).reshape(grid.num_tiles, PIXELS_PER_TILE)
 
 
 def _untile(x: jax.Array, grid: _Grid) -> jax.Array:
@@ -216,27 +227,31 @@ def _alpha(pix, mean, conic, opacity):
   return alpha, raw, gauss, dx, dy, keep
 
 
-def _forward_init(splats, pix, pix_inside):
+def _forward_init(splats, pix, pix_inside, emap):
+  """Initial forward carry; its evidence slot is None without a map."""
   t, p = pix.shape[:2]
   dtype = splats[0].dtype
-  return (jnp.int32(0), jnp.ones((t, p), dtype), jnp.zeros((t, p, 3), dtype),
-          jnp.zeros((t, p), dtype), jnp.zeros((t, p), jnp.int32), ~pix_inside,
-          jnp.zeros((splats[0].shape[0],), dtype))
+  carry = (jnp.int32(0), jnp.ones((t, p), dtype), jnp.zeros((t, p, 3), dtype),
+           jnp.zeros((t, p), dtype), jnp.zeros((t, p), jnp.int32),
+           ~pix_inside, jnp.zeros((splats[0].shape[0],), dtype))
+  return carry + (None if emap is None else jnp.zeros_like(carry[-1]),)
 
 
-def _forward_round(grid, splats, tables, pix, carry):
+def _forward_round(grid, splats, tables, pix, emap, carry):
   """Blends list entries [r*B, (r+1)*B) of every tile into the carry.
 
   The B entries are walked one at a time on [T, P] arrays, which stay in
   cache (a [T, B, P] formulation was memory-bound at 400 MB per round), in a
   fori_loop rather than unrolled (unrolling B = 32 took a minute to compile).
+  `emap` (float [T, P] or None) adds the map-weighted sums; with None the
+  traced program is the plain blend (a Python-level branch).
   """
-  r, trans, color, depth, n_contrib, done, contrib = carry
+  r, trans, color, depth, n_contrib, done, contrib, evidence = carry
   gid, in_list, (means2d, conics, colors, opacities, depths) = _entries(
       r, splats, tables, grid.chunk_size)
 
   def entry(b, state):
-    trans, color, depth, n_contrib, done, per_entry = state
+    trans, color, depth, n_contrib, done, per_entry, per_ev = state
     alpha = _alpha(pix, means2d[:, b], conics[:, b], opacities[:, b])[0]
     t_after = trans * (1.0 - alpha)
     include = ((t_after >= TRANSMITTANCE_THRESHOLD) & ~done
@@ -250,18 +265,24 @@ def _forward_round(grid, splats, tables, pix, carry):
     done = done | ~include
     # Pixels outside the image start `done`, so their w is already 0.
     per_entry = per_entry.at[:, b].set(jnp.sum(w, axis=1))
-    return trans, color, depth, n_contrib, done, per_entry
+    if emap is not None:
+      per_ev = per_ev.at[:, b].set(jnp.sum(w * emap, axis=1))
+    return trans, color, depth, n_contrib, done, per_entry, per_ev
 
-  state = (trans, color, depth, n_contrib, done,
-           jnp.zeros(in_list.shape, trans.dtype))
-  trans, color, depth, n_contrib, done, per_entry = jax.lax.fori_loop(
+  zeros = jnp.zeros(in_list.shape, trans.dtype)
+  state = (trans, color, depth, n_contrib, done, zeros,
+           None if emap is None else zeros)
+  trans, color, depth, n_contrib, done, per_entry, per_ev = jax.lax.fori_loop(
       0, grid.chunk_size, entry, state)
   per_entry = jnp.where(in_list, per_entry, 0.0)
   contrib = contrib.at[gid.reshape(-1)].add(per_entry.reshape(-1))
-  return r + 1, trans, color, depth, n_contrib, done, contrib
+  if emap is not None:
+    per_ev = jnp.where(in_list, per_ev, 0.0)
+    evidence = evidence.at[gid.reshape(-1)].add(per_ev.reshape(-1))
+  return r + 1, trans, color, depth, n_contrib, done, contrib, evidence
 
 
-def _blend_forward(grid, splats, tables, pix, pix_inside):
+def _blend_forward(grid, splats, tables, pix, pix_inside, emap):
   count = tables[2]
 
   def cond(carry):
@@ -270,50 +291,52 @@ def _blend_forward(grid, splats, tables, pix, pix_inside):
     active = (r * grid.chunk_size < count) & ~jnp.all(done, axis=1)
     return (r < grid.num_rounds) & jnp.any(active)
 
-  body = functools.partial(_forward_round, grid, splats, tables, pix)
+  body = functools.partial(_forward_round, grid, splats, tables, pix, emap)
   carry = jax.lax.while_loop(
-      cond, body, _forward_init(splats, pix, pix_inside))
-  _, trans, color, depth, n_contrib, _, contrib = carry
-  return color, depth, trans, n_contrib, contrib
+      cond, body, _forward_init(splats, pix, pix_inside, emap))
+  _, trans, color, depth, n_contrib, _, contrib, evidence = carry
+  return color, depth, trans, n_contrib, contrib, evidence
 
 
-def blend_autodiff(grid, splats, tables, pix, pix_inside):
+def blend_autodiff(grid, splats, tables, pix, pix_inside, emap=None):
   """The same blend as a fixed-length scan, for plain reverse-mode autodiff.
 
   `while_loop` cannot be reverse-differentiated, so this runs every round
   (no early exit) and autodiff stores every round's intermediates. It exists
   to measure what the custom VJP saves (bench_rasterizer.py) and as a second
-  gradient check; training never uses it.
+  gradient check; training never uses it. `emap` (float [T, P] or None)
+  adds the evidence sums exactly as the custom-VJP blend does.
   """
-  body = functools.partial(_forward_round, grid, splats, tables, pix)
+  body = functools.partial(_forward_round, grid, splats, tables, pix, emap)
   carry = jax.lax.scan(lambda c, _: (body(c), None),
-                       _forward_init(splats, pix, pix_inside), None,
+                       _forward_init(splats, pix, pix_inside, emap), None,
                        length=grid.num_rounds)[0]
-  _, trans, color, depth, _, _, contrib = carry
-  return color, depth, trans, contrib
+  _, trans, color, depth, _, _, contrib, evidence = carry
+  return color, depth, trans, contrib, evidence
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
 def _blend(grid, means2d, conics, colors, opacities, depths, tables, pix,
-           pix_inside):
+           pix_inside, emap):
   splats = (means2d, conics, colors, opacities, depths)
-  color, depth, trans, _, contrib = _blend_forward(grid, splats, tables, pix,
-                                                   pix_inside)
-  return color, depth, trans, contrib
+  color, depth, trans, _, contrib, evidence = _blend_forward(
+      grid, splats, tables, pix, pix_inside, emap)
+  return color, depth, trans, contrib, evidence
 
 
 def _blend_fwd(grid, means2d, conics, colors, opacities, depths, tables, pix,
-               pix_inside):
+               pix_inside, emap):
   splats = (means2d, conics, colors, opacities, depths)
-  color, depth, trans, n_contrib, contrib = _blend_forward(
-      grid, splats, tables, pix, pix_inside)
+  color, depth, trans, n_contrib, contrib, evidence = _blend_forward(
+      grid, splats, tables, pix, pix_inside, emap)
   residuals = (splats, tables, pix, color, depth, trans, n_contrib)
-  return (color, depth, trans, contrib), residuals
+  return (color, depth, trans, contrib, evidence), residuals
 
 
 def _blend_bwd(grid, residuals, cotangents):
   splats, tables, pix, color, depth, trans_final, n_contrib = residuals
-  g_color, g_depth, g_trans, _ = cotangents   # contribution: not differentiable
+  # Contribution and evidence are not differentiable.
+  g_color, g_depth, g_trans = cotangents[:3]
   n = splats[0].shape[0]
   dtype = splats[0].dtype
   t, p = pix.shape[:2]
@@ -375,18 +398,36 @@ def _blend_bwd(grid, residuals, cotangents):
   grads = jax.lax.while_loop(cond, body, init)[3]
   # Columns: mean (2), conic (3), colour (3), opacity, depth.
   return (grads[:, 0:2], grads[:, 2:5], grads[:, 5:8], grads[:, 8],
-          grads[:, 9], None, None, None)
+          grads[:, 9], None, None, None, None)
 
 
 _blend.defvjp(_blend_fwd, _blend_bwd)
 
 
+def _check_evidence_map(evidence_map, cam: camera_lib.Camera) -> None:
+  shape = (int(cam.height), int(cam.width))
+  if np.shape(evidence_map) != shape:
+    raise ValueError(
+        f"evidence_map must be a float [H, W] = {list(shape)} map of the "
+        f"rendered view, got shape {np.shape(evidence_map)}; resize it to "
+        "the camera's image size.")
+  if not jnp.issubdtype(jnp.result_type(evidence_map), jnp.floating):
+    raise ValueError(
+        f"evidence_map must be floating point in [0, 1], got dtype "
+        f"{jnp.result_type(evidence_map)}; cast it (e.g. mask.astype(float)).")
+
+
 def rasterize(proj: project_lib.Projected, cam: camera_lib.Camera,
               background: jax.Array, cfg: config_lib.RenderConfig,
-              custom_vjp: bool = True) -> RenderOutput:
+              custom_vjp: bool = True,
+              evidence_map: jax.Array | None = None) -> RenderOutput:
   """Bins, sorts and blends projected splats into an image.
 
   `custom_vjp=False` swaps in `blend_autodiff` (benchmarks and tests only).
+  `evidence_map` (float [H, W], values in [0, 1], no gradient flows into it)
+  makes the same pass also return `RenderOutput.evidence`, per Gaussian the
+  sum over pixels of blending weight times map value. Without it the traced
+  program is the plain render and `evidence` is None.
   """
   grid = _Grid(int(cam.width), int(cam.height), cfg.tile_budget,
                cfg.chunk_size)
@@ -395,12 +436,17 @@ def rasterize(proj: project_lib.Projected, cam: camera_lib.Camera,
   gauss, start, count, num_overflow, max_count = _bin(proj, grid)
   splats = (proj.means2d, proj.conics, proj.colors, proj.opacities,
             proj.depths)
+  emap = None
+  if evidence_map is not None:
+    _check_evidence_map(evidence_map, cam)
+    emap = _tile(jax.lax.stop_gradient(jnp.asarray(evidence_map, dtype)),
+                 grid)
   if custom_vjp:
-    color, depth, trans, contrib = _blend(grid, *splats, (gauss, start, count),
-                                          pix, pix_inside)
+    color, depth, trans, contrib, evidence = _blend(
+        grid, *splats, (gauss, start, count), pix, pix_inside, emap)
   else:
-    color, depth, trans, contrib = blend_autodiff(
-        grid, splats, (gauss, start, count), pix, pix_inside)
+    color, depth, trans, contrib, evidence = blend_autodiff(
+        grid, splats, (gauss, start, count), pix, pix_inside, emap)
   trans = _untile(trans, grid)
   alpha = 1.0 - trans
   image = _untile(color, grid) + trans[..., None] * background.astype(dtype)
@@ -409,14 +455,16 @@ def rasterize(proj: project_lib.Projected, cam: camera_lib.Camera,
   depth = jnp.where(has_alpha, depth / jnp.where(has_alpha, alpha, 1.0), 0.0)
   return RenderOutput(
       image=image, alpha=alpha, depth=depth, visible=contrib > 0,
-      contribution=contrib, num_overflow=num_overflow.astype(jnp.int32),
+      contribution=contrib, evidence=evidence,
+      num_overflow=num_overflow.astype(jnp.int32),
       max_tile_count=max_count.astype(jnp.int32))
 
 
 def render(params: gaussians.GaussianParams, alive: jax.Array,
            cam: camera_lib.Camera, background: jax.Array,
            cfg: config_lib.RenderConfig = config_lib.RenderConfig(),
-           sh_degree: jax.Array | int | None = None) -> RenderOutput:
+           sh_degree: jax.Array | int | None = None,
+           evidence_map: jax.Array | None = None) -> RenderOutput:
   """Renders the alive Gaussians seen from `cam`.
 
   Args:
@@ -426,6 +474,9 @@ def render(params: gaussians.GaussianParams, alive: jax.Array,
     background: float [3], colour behind the Gaussians.
     cfg: rasterizer settings (near plane, tile budget, chunk size).
     sh_degree: int [], SH bands used (default: all stored bands).
+    evidence_map: float [H, W] in [0, 1] or None; if given, the output's
+      `evidence` [C] holds each Gaussian's map-weighted blending weight
+      (no gradient flows into the map).
   """
   gaussians.validate(params, alive)
   camera_lib.validate(cam)
@@ -436,4 +487,5 @@ def render(params: gaussians.GaussianParams, alive: jax.Array,
     sh_degree = params.sh_degree
   proj = project_lib.project(params, alive, cam, near=cfg.near,
                              sh_degree=sh_degree)
-  return rasterize(proj, cam, jnp.asarray(background), cfg)
+  return rasterize(proj, cam, jnp.asarray(background), cfg,
+                   evidence_map=evidence_map)

@@ -26,8 +26,13 @@ def _rotmat(q):
                  1 - 2 * (x * x + y * y)], -1)], -2)
 
 
-def render_ref(params, alive, cam, background, near=0.2, sh_degree=None):
-  """Returns dict(image [H,W,3], alpha [H,W], depth [H,W], contribution [C])."""
+def render_ref(params, alive, cam, background, near=0.2, sh_degree=None,
+               evidence_map=None):
+  """Returns dict(image [H,W,3], alpha [H,W], depth [H,W], contribution [C]).
+
+  With evidence_map (float [H, W]) the dict also holds evidence [C], the
+  blending weights of each Gaussian summed against the map.
+  """
   dtype = params.means.dtype
   rot = jnp.asarray(cam.rotation, dtype)
   p = params.means @ rot.T + jnp.asarray(cam.translation, dtype)
@@ -87,5 +92,10 @@ def render_ref(params, alive, cam, background, near=0.2, sh_degree=None):
   depth = wts @ z[order]
   depth = jnp.where(acc > 0, depth / jnp.where(acc > 0, acc, 1.0), 0.0)
   contrib = jnp.zeros_like(z).at[order].set(jnp.sum(wts, 0))
-  return dict(image=image.reshape(h, w, 3), alpha=acc.reshape(h, w),
-              depth=depth.reshape(h, w), contribution=contrib)
+  out = dict(image=image.reshape(h, w, 3), alpha=acc.reshape(h, w),
+             depth=depth.reshape(h, w), contribution=contrib)
+  if evidence_map is not None:
+    m = jax.lax.stop_gradient(jnp.asarray(evidence_map, dtype)).reshape(-1)
+    out["evidence"] = jnp.zeros_like(z).at[order].set(
+        jnp.sum(wts * m[:, None], 0))
+  return out
