@@ -91,6 +91,10 @@ PAPER_STATIC_PROMPTS = ("a photo of a building", "a photo of a wall",
 PAPER_STEPS = 20_000
 SCORERS = ("off", "clip", "oracle")
 WEIGHTINGS = ("visibility", "contribution")
+# Where a scorer's evidence comes from: "image", the paper's one score per
+# rendered view; "pixel", a per-pixel transient probability map per training
+# view, accumulated into each Gaussian by its blending weights.
+EVIDENCES = ("image", "pixel")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,12 +108,15 @@ class SemanticConfig:
   when step >= prune_start and (step - prune_start) % prune_every == 0.
   """
   scorer: str = "off"          # off | clip | oracle (benchmarks: reads masks)
+  evidence: str = "image"      # image (the paper) | pixel (localized maps)
   distractor_prompts: tuple[str, ...] = PAPER_DISTRACTOR_PROMPTS  # D
   static_prompts: tuple[str, ...] = PAPER_STATIC_PROMPTS  # S, logged only
   beta: float = 0.1            # accumulation rate (eq. 8)
   lambda_c: float = 0.01       # CLIP opacity loss weight (eq. 11; 0: off)
   prune: bool = True           # eq. 13 pruning (False: an ablation)
-  tau: float = 0.015           # prune when s_j > tau (eq. 13)
+  tau: float = 0.015           # prune when s_j > tau (eq. 13), image evidence
+  tau_p: float = 0.5           # pixel evidence: prune when the probability
+  #   s_j that a Gaussian's light is transient exceeds this (every scene)
   n_min: float = 10.0          # ... or n_j < n_min and alpha_j < alpha_min;
   alpha_min: float = 0.1       #     n_min is divided by score_every
   accumulate_start: int = 500  # first scored step
@@ -122,11 +129,22 @@ class SemanticConfig:
   #   view (n_j still counts views; see semantic.accumulate)
   clip_variant: str = "ViT-B/32"  # frozen tower; 224x224 resized input
   oracle_saturation: float = 0.1  # transient area fraction that scores 1.0
+  loss_masking: bool = False   # pixel evidence: weight the photometric loss
+  #   per pixel by 1 - m (robust-3DGS style); off in the paper
+  max_prune_fraction: float = 0.5  # a prune event that would remove more
+  #   of the alive Gaussians than this removes none (1.0: the paper, no guard)
+  dense_input_size: int = 448  # clip + pixel: CLIP input side (B/32: 14x14)
 
   @property
   def enabled(self) -> bool:
-    """Guidance runs: a scorer is chosen and there are distractor prompts."""
-    return self.scorer != "off" and len(self.distractor_prompts) > 0
+    """Guidance runs: a scorer is chosen (guidance.validate rejects a CLIP
+    scorer without distractor prompts instead of running vanilla)."""
+    return self.scorer != "off"
+
+  @property
+  def localized(self) -> bool:
+    """Evidence is a per-pixel map (s_j is a probability, tau_p applies)."""
+    return self.enabled and self.evidence == "pixel"
 
   def scaled_to(self, steps: int) -> "SemanticConfig":
     """The schedule scaled from the paper's 20k steps to `steps`."""

@@ -14,6 +14,17 @@ are an input of the step, never part of the trained state:
   - `clip.scorer.ClipScorer` (the paper): the Flax CLIP tower on the
     rendered view. It lives in the clip package and is imported only when
     the config asks for it, so runs without CLIP never import it.
+
+With pixel evidence (SemanticConfig.evidence = "pixel") the scorer is a
+`PixelMapScorer`: one float [H, W] map m per training view, the probability
+that each pixel shows a transient. The train step hands m[view] to the
+rasterizer, which returns each Gaussian's sum_i w_ij m_i in the same pass
+(`semantic.accumulate_pixel`). Maps come from the training photo, not the
+render: the photo shows the transient whether or not it has been fitted
+yet, the map must exist before the render that accumulates it, and a
+frozen scorer on a fixed photo needs to run once per view, not per step.
+  - ORACLE-PIXEL (benchmarks only): m = the ground-truth transient mask.
+  - dense CLIP: `clip.scorer.make_dense` per patch, upsampled to the view.
 """
 
 import functools
@@ -28,11 +39,34 @@ from clipgs_jax import config as config_lib
 from clipgs_jax import densify
 from clipgs_jax import semantic
 
-# Keys of the per-step scores in the train step's metrics.
+# Keys of the per-step scores in the train step's metrics: image evidence
+# logs the view's scores, pixel evidence the mean of the view's map.
 SCORE_KEYS = ("s_hat_d", "s_hat_s")
-# Bins of the s_j histogram logged at each prune event, over [0, beta / 2]:
-# s_j is a mean of beta * max(0, s_hat_d - 0.5) <= beta / 2.
+MAP_KEYS = ("map_mean",)
+
+
+def per_step_keys(sem: config_lib.SemanticConfig) -> tuple[str, ...]:
+  """The train step's metrics that fit logs per scored step (scores.jsonl);
+  the first is NaN on steps that did not score."""
+  return (MAP_KEYS if sem.localized else SCORE_KEYS) + ("view",)
+# Bins of the s_j histogram logged at each prune event, over [0, beta / 2]
+# for image evidence (s_j is a mean of beta * max(0, s_hat_d - 0.5) <=
+# beta / 2) and over [0, 1] for pixel evidence (s_j is a probability).
 HISTOGRAM_BINS = 50
+
+
+@flax.struct.dataclass
+class PixelMapScorer:
+  """Per-pixel transient probability maps of the training views.
+
+  Attributes:
+    maps: float32 [V, H, W] in [0, 1], one map per training view.
+  """
+  maps: jax.Array
+
+  def score_map(self, view: jax.Array) -> jax.Array:
+    """float32 [H, W], the map of training view `view`."""
+    return self.maps[view]
 
 
 @flax.struct.dataclass
@@ -62,6 +96,27 @@ def validate(sem: config_lib.SemanticConfig) -> None:
   if sem.scorer not in config_lib.SCORERS:
     problems.append(f"scorer={sem.scorer!r} is not one of "
                     f"{', '.join(config_lib.SCORERS)}")
+  if sem.evidence not in config_lib.EVIDENCES:
+    problems.append(f"evidence={sem.evidence!r} is not one of "
+                    f"{', '.join(config_lib.EVIDENCES)}")
+  if sem.scorer == "clip" and not sem.distractor_prompts:
+    problems.append("scorer='clip' has no distractor prompts; give some "
+                    "(e.g. the paper's) or use scorer='off' for vanilla 3DGS")
+  if (sem.scorer == "clip" and sem.evidence == "pixel"
+      and not sem.static_prompts):
+    problems.append("scorer='clip' with evidence='pixel' needs static "
+                    "prompts: p(distractor) is a softmax over D and S, which "
+                    "is identically 1 without S")
+  if not 0.0 <= sem.tau_p <= 1.0:
+    problems.append(f"tau_p={sem.tau_p} is not in [0, 1]")
+  if not 0.0 < sem.max_prune_fraction <= 1.0:
+    problems.append(f"max_prune_fraction={sem.max_prune_fraction} is not in "
+                    "(0, 1] (1.0 lifts the guard)")
+  if sem.loss_masking and sem.evidence != "pixel":
+    problems.append("loss_masking needs evidence='pixel' (a per-pixel map)")
+  if sem.dense_input_size < 32 or sem.dense_input_size % 32:
+    problems.append(f"dense_input_size={sem.dense_input_size} must be a "
+                    "positive multiple of 32 (the ViT-B/32 patch)")
   if sem.weighting not in config_lib.WEIGHTINGS:
     problems.append(f"weighting={sem.weighting!r} is not one of "
                     f"{', '.join(config_lib.WEIGHTINGS)}")
@@ -95,8 +150,8 @@ def make_scorer(sem: config_lib.SemanticConfig, scene, *,
   """The scorer `sem` asks for, or None when guidance is off.
 
   Args:
-    sem: the semantic config; `sem.enabled` False (scorer "off" or no
-      distractor prompts) returns None and imports nothing.
+    sem: the semantic config; `sem.enabled` False (scorer "off") returns
+      None and imports nothing.
     scene: a data.scene.Scene; the oracle reads `scene.train.masks`.
     clip_weights: the --clip_weights flag (else $CLIPGS_CLIP_WEIGHTS).
     clip_params: (ClipConfig, params) to use instead of a weights file
@@ -112,12 +167,31 @@ def make_scorer(sem: config_lib.SemanticConfig, scene, *,
           "semantic scorer 'oracle' reads ground-truth transient masks, but "
           "this scene has none: add masks/<image stem>.png (white = "
           "transient) for the training views, or use --semantic=clip|off.")
+    if sem.localized:
+      return PixelMapScorer(maps=jnp.asarray(masks, jnp.float32))
     return OracleScorer(masks=jnp.asarray(masks, bool),
                         saturation=sem.oracle_saturation)
   # Only here is CLIP imported.
   from clipgs_jax.clip import scorer as clip_scorer  # pylint: disable=g-import-not-at-top
+  if sem.localized:
+    dense = clip_scorer.make_dense(sem, weights_path=clip_weights,
+                                   clip_params=clip_params,
+                                   input_size=sem.dense_input_size)
+    return PixelMapScorer(maps=dense_maps(dense, scene.train.images))
   return clip_scorer.make(sem, weights_path=clip_weights,
                           clip_params=clip_params)
+
+
+def dense_maps(dense_scorer, images) -> jax.Array:
+  """float32 [V, H, W]: a dense scorer's map of every training photo.
+
+  Args:
+    dense_scorer: an object with `score_map(image, view) -> [H, W]`.
+    images: float [V, H, W, 3] in [0, 1], the training photos.
+  """
+  fn = jax.jit(lambda im: dense_scorer.score_map(im, jnp.int32(0)))
+  maps = [np.asarray(fn(jnp.asarray(im, jnp.float32))) for im in images]
+  return jnp.asarray(np.stack(maps), jnp.float32)
 
 
 def check_scorer(sem: config_lib.SemanticConfig, scorer, caller: str
@@ -203,19 +277,31 @@ def prune(state, *, cfg: config_lib.Config):
   n_min is divided by score_every: n counts scored views only, so scoring
   every k-th step makes n a 1/k sample of the views a Gaussian was seen in.
 
+  With pixel evidence the threshold is tau_p on the probability s_j, for
+  rows with at least semantic.MIN_EVIDENCE_WEIGHT of evidence. An event
+  that would remove more than max_prune_fraction of the alive rows removes
+  none (semantic.guard_prune).
+
   Returns:
     (state, info) with int32 num_alive_before, num_pruned_semantic,
-    num_pruned_visibility, and float32 [HISTOGRAM_BINS] histogram of s_j
-    over the alive rows before the prune (bins over [0, beta / 2]).
+    num_pruned_visibility (0 when guarded), num_refused (what a refused
+    event would have removed, else 0), bool guarded, float32
+    [HISTOGRAM_BINS] histogram of s_j over the alive rows before the prune
+    (bins: histogram_edges), and bool [C] pruned_semantic, the rows the
+    semantic rule removed (for the mask IoU of the pruned Gaussians).
   """
   sem = cfg.semantic
   by_score, by_visibility = semantic.prune_masks(
       state.semantic, state.params.opacity_logits, state.alive,
-      tau=sem.tau, n_min=sem.n_min / sem.score_every,
-      alpha_min=sem.alpha_min)
+      tau=sem.tau_p if sem.localized else sem.tau,
+      n_min=sem.n_min / sem.score_every, alpha_min=sem.alpha_min,
+      min_weight=semantic.MIN_EVIDENCE_WEIGHT if sem.localized else 0.0)
+  wanted = jnp.sum(by_score | by_visibility, dtype=jnp.int32)
+  by_score, by_visibility, guarded = semantic.guard_prune(
+      by_score, by_visibility, state.alive, sem.max_prune_fraction)
   s = semantic.normalized_scores(state.semantic)
   histogram, _ = jnp.histogram(s, bins=HISTOGRAM_BINS,
-                               range=(0.0, 0.5 * sem.beta),
+                               range=_histogram_range(sem),
                                weights=state.alive.astype(jnp.float32))
   capacity = state.alive.shape[0]
   rows = jnp.arange(capacity, dtype=jnp.int32)
@@ -223,7 +309,10 @@ def prune(state, *, cfg: config_lib.Config):
       "num_alive_before": jnp.sum(state.alive, dtype=jnp.int32),
       "num_pruned_semantic": jnp.sum(by_score, dtype=jnp.int32),
       "num_pruned_visibility": jnp.sum(by_visibility, dtype=jnp.int32),
+      "num_refused": jnp.where(guarded, wanted, 0),
+      "guarded": guarded,
       "histogram": histogram,
+      "pruned_semantic": by_score,
   }
   state = densify.write_rows(
       state, jnp.where(by_score | by_visibility, rows, capacity), None,
@@ -237,9 +326,13 @@ def make_prune(cfg: config_lib.Config):
   return jax.jit(functools.partial(prune, cfg=cfg), donate_argnums=(0,))
 
 
+def _histogram_range(sem: config_lib.SemanticConfig) -> tuple[float, float]:
+  return (0.0, 1.0) if sem.localized else (0.0, 0.5 * sem.beta)
+
+
 def histogram_edges(sem: config_lib.SemanticConfig) -> list[float]:
   """The HISTOGRAM_BINS + 1 bin edges of the prune-event histogram."""
-  return np.linspace(0.0, 0.5 * sem.beta, HISTOGRAM_BINS + 1).tolist()
+  return np.linspace(*_histogram_range(sem), HISTOGRAM_BINS + 1).tolist()
 
 
 def summarize(prune_events: list[dict], num_alive: int,
@@ -252,10 +345,13 @@ def summarize(prune_events: list[dict], num_alive: int,
   semantic_total = sum(e["num_pruned_semantic"] for e in prune_events)
   visibility_total = sum(e["num_pruned_visibility"] for e in prune_events)
   removed = semantic_total + visibility_total
+  refused = [e for e in prune_events if e.get("guarded")]
   return {
       "num_pruned_semantic": semantic_total,
       "num_pruned_visibility": visibility_total,
       "fraction_pruned": removed / max(removed + num_alive, 1),
       "num_prune_events": len(prune_events),
+      "num_refused_prune_events": len(refused),
+      "refused_prune_steps": [e["step"] for e in refused],
       "semantic_bytes": semantic.state_bytes(stats),
   }

@@ -113,14 +113,29 @@ def dssim(a: jax.Array, b: jax.Array, padding: str = "same") -> jax.Array:
   return 1.0 - ssim(a, b, padding)
 
 
-def photometric(pred: jax.Array, target: jax.Array, lambda_dssim: float
+def photometric(pred: jax.Array, target: jax.Array, lambda_dssim: float,
+                weight: jax.Array | None = None
                 ) -> tuple[jax.Array, dict[str, jax.Array]]:
   """3DGS loss (1 - lambda) L1 + lambda (1 - SSIM), SSIM zero-padded "same".
 
+  Args:
+    pred, target: float [H, W, 3].
+    lambda_dssim: the D-SSIM share.
+    weight: None, or float [H, W] >= 0 per-pixel weights (loss masking:
+      1 - the transient map); both terms become weighted means. None is
+      the unweighted 3DGS loss, computed exactly as without the argument.
   Returns:
     float [] loss and a dict with its "l1" and "ssim" terms.
   """
-  l1_term = l1(pred, target)
-  ssim_term = ssim(pred, target, padding="same")
+  if weight is None:
+    l1_term = l1(pred, target)
+    ssim_term = ssim(pred, target, padding="same")
+  else:
+    w = weight[..., None]
+    # A fully masked view has no pixel to fit: both terms are then 0 / eps
+    # = 0 (SSIM term 1 - 0 adds a constant, no gradient).
+    total = jnp.maximum(jnp.sum(w) * pred.shape[-1], 1e-6)
+    l1_term = jnp.sum(w * jnp.abs(pred - target)) / total
+    ssim_term = jnp.sum(w * ssim_map(pred, target, padding="same")) / total
   loss = (1.0 - lambda_dssim) * l1_term + lambda_dssim * (1.0 - ssim_term)
   return loss, {"l1": l1_term, "ssim": ssim_term}

@@ -16,6 +16,11 @@ from clipgs_jax import densify
 # s_hat = (cos + 1) / 2 maps cosine similarity to [0, 1]; 0.5 (cos = 0) is
 # the neutral point below which a view adds no distractor evidence.
 NEUTRAL_SCORE = 0.5
+# Pixel evidence: a Gaussian is judged only once its blending weights over
+# the scored views sum to at least one whole pixel. Below that, s_j is the
+# ratio of a few partial edge pixels, and one misclassified pixel can move
+# it across any threshold.
+MIN_EVIDENCE_WEIGHT = 1.0
 
 
 def normalized_max_cosine(image_embedding: jax.Array,
@@ -76,6 +81,32 @@ def accumulate(stats: densify.SemanticStats, visible: jax.Array,
                        n=stats.n + v)
 
 
+def accumulate_pixel(stats: densify.SemanticStats, evidence: jax.Array,
+                     contribution: jax.Array, visible: jax.Array,
+                     due: jax.Array) -> densify.SemanticStats:
+  """Localized evidence: acc += sum_i w_ij m_i, weight += sum_i w_ij.
+
+  s_j = acc_j / weight_j is then the share of Gaussian j's blending weight,
+  over all scored views, that fell on pixels the map calls transient: a
+  probability in [0, 1] whose scale does not depend on the scorer or the
+  scene (unlike the image-level s_j, which lives on beta times the CLIP
+  cosine scale).
+
+  Args:
+    stats: per-row acc, weight and n, float [C].
+    evidence: float [C], the rasterizer's sum_i w_ij m_i for the map m.
+    contribution: float [C], the rasterizer's sum_i w_ij.
+    visible: bool [C], contribution > 0; n counts the views.
+    due: bool [], this step scores (otherwise the stats are unchanged).
+  """
+  dtype = stats.acc.dtype
+  on = due.astype(dtype)
+  return stats.replace(
+      acc=stats.acc + on * evidence.astype(dtype),
+      weight=stats.weight + on * contribution.astype(dtype),
+      n=stats.n + on * visible.astype(dtype))
+
+
 def normalized_scores(stats: densify.SemanticStats) -> jax.Array:
   """Eq. 10: s_j = acc_j / weight_j (= n_j for visibility), 0 unseen."""
   seen = stats.weight > 0
@@ -94,15 +125,20 @@ def opacity_loss(stats: densify.SemanticStats, opacity_logits: jax.Array,
 
 def prune_masks(stats: densify.SemanticStats, opacity_logits: jax.Array,
                 alive: jax.Array, *, tau: float, n_min: float,
-                alpha_min: float) -> tuple[jax.Array, jax.Array]:
+                alpha_min: float, min_weight: float = 0.0
+                ) -> tuple[jax.Array, jax.Array]:
   """Eq. 13, split by condition so each can be counted.
 
+  Args:
+    min_weight: the semantic condition also needs weight_j >= min_weight
+      (pixel evidence: MIN_EVIDENCE_WEIGHT; the paper's rule: 0).
   Returns:
-    semantic: bool [C], alive and s_j > tau.
+    semantic: bool [C], alive, s_j > tau and weight_j >= min_weight.
     visibility: bool [C], alive, not semantic, n_j < n_min and
       alpha_j < alpha_min. Prune `semantic | visibility`.
   """
-  semantic = alive & (normalized_scores(stats) > tau)
+  semantic = (alive & (normalized_scores(stats) > tau)
+              & (stats.weight >= min_weight))
   alpha = jax.nn.sigmoid(opacity_logits)
   visibility = alive & ~semantic & (stats.n < n_min) & (alpha < alpha_min)
   return semantic, visibility
@@ -125,6 +161,22 @@ def oracle_score(mask: jax.Array, saturation: float) -> jax.Array:
     raise ValueError(f"oracle saturation must be in (0, 1], got {saturation}.")
   f = jnp.mean(mask.astype(jnp.float32))
   return NEUTRAL_SCORE + NEUTRAL_SCORE * jnp.minimum(1.0, f / saturation)
+
+
+def guard_prune(semantic_mask: jax.Array, visibility_mask: jax.Array,
+                alive: jax.Array, max_fraction: float
+                ) -> tuple[jax.Array, jax.Array, jax.Array]:
+  """No prune event deletes the scene: one that would remove more than
+  `max_fraction` of the alive rows removes none.
+
+  Returns:
+    (semantic, visibility, guarded): the masks to apply (all False when
+    guarded) and bool [], the event was refused.
+  """
+  removed = jnp.sum(semantic_mask | visibility_mask)
+  guarded = removed > max_fraction * jnp.sum(alive)
+  keep = ~guarded
+  return semantic_mask & keep, visibility_mask & keep, guarded
 
 
 def state_bytes(stats: densify.SemanticStats) -> int:

@@ -27,6 +27,7 @@ from clipgs_jax import metrics as metrics_lib
 from clipgs_jax import optim
 from clipgs_jax import project
 from clipgs_jax import rasterize
+from clipgs_jax import semantic as semantic_lib
 from clipgs_jax.data import scene as scene_lib
 
 _log = logging.getLogger(__name__)
@@ -37,12 +38,6 @@ _BACKGROUND_STREAM = 2
 _DENSIFY_STREAM = 3
 
 CHECKPOINT_NAME = "checkpoint.npz"
-# A semantic prune that removes more than this share of the alive
-# Gaussians logs a warning: tau is below the scene's static scores.
-PRUNE_WARN_FRACTION = 0.5
-# Guided steps' metrics that fit logs per step (scores.jsonl), not at log
-# steps.
-_PER_STEP_KEYS = guidance.SCORE_KEYS + ("view",)
 
 
 @flax.struct.dataclass
@@ -155,7 +150,9 @@ def train_step(state: TrainState, batch: Batch, scorer=None, *,
   the densification statistics. With a scorer (semantic guidance on) the
   loss gains the CLIP opacity term from reg_start, and the same render is
   scored and accumulated into state.semantic when due; without one the
-  step is exactly the vanilla 3DGS step.
+  step is exactly the vanilla 3DGS step. With pixel evidence the view's
+  map m goes into the render, which returns each Gaussian's sum w m beside
+  sum w, and (loss_masking) the photometric loss is weighted by 1 - m.
 
   Args:
     state: the TrainState (donated by make_train_step).
@@ -171,14 +168,21 @@ def train_step(state: TrainState, batch: Batch, scorer=None, *,
   target = batch.images[view]
   bg = background(state.key, step, cfg)
   degree = densify.sh_degree(step, cfg)
+  sem = cfg.semantic
+  localized = scorer is not None and sem.localized
+  evidence_map = (jax.lax.stop_gradient(scorer.score_map(view))
+                  if localized else None)
+  loss_weight = (1.0 - evidence_map if localized and sem.loss_masking
+                 else None)
 
   def loss_fn(params, offset):
     proj = project.project(params, state.alive, cam, near=cfg.render.near,
                            sh_degree=degree)
     proj = proj.replace(means2d=proj.means2d + offset)
-    out = rasterize.rasterize(proj, cam, bg, cfg.render)
+    out = rasterize.rasterize(proj, cam, bg, cfg.render,
+                              evidence_map=evidence_map)
     loss, terms = losses.photometric(out.image, target,
-                                     cfg.train.lambda_dssim)
+                                     cfg.train.lambda_dssim, loss_weight)
     if scorer is not None:
       terms["semantic_loss"] = guidance.opacity_regularizer(
           state.semantic, params.opacity_logits, state.alive, step,
@@ -214,13 +218,19 @@ def train_step(state: TrainState, batch: Batch, scorer=None, *,
   for field in optim.FIELDS:
     metrics[f"grad_norm/{field}"] = optax.tree.norm(getattr(grads, field))
   semantic_stats = state.semantic
-  if scorer is not None:
+  if localized:
     metrics["semantic_loss"] = terms["semantic_loss"]
-    weight = (None if cfg.semantic.weighting == "visibility"
-              else out.contribution)
+    due = guidance.scores_due(step, sem)
+    semantic_stats = semantic_lib.accumulate_pixel(
+        state.semantic, out.evidence, out.contribution, out.visible, due)
+    metrics.update(map_mean=jnp.where(due, jnp.mean(evidence_map), jnp.nan),
+                   view=view)
+  elif scorer is not None:
+    metrics["semantic_loss"] = terms["semantic_loss"]
+    weight = None if sem.weighting == "visibility" else out.contribution
     semantic_stats, scores = guidance.score_and_accumulate(
         state.semantic, out.image, out.visible, weight, view, step, scorer,
-        cfg.semantic)
+        sem)
     metrics.update(scores, view=view)
   new_state = state.replace(params=params, opt_state=opt_state,
                             densify=stats, semantic=semantic_stats,
@@ -284,7 +294,11 @@ class FitResult:
     scores: semantic guidance only: {step, view, s_hat_d, s_hat_s} of every
       scored step (s_hat_s None where the scorer has none).
     prune_events: semantic guidance only: {step, num_alive_before,
-      num_pruned_semantic, num_pruned_visibility, histogram} per prune.
+      num_pruned_semantic, num_pruned_visibility, num_refused, guarded,
+      histogram} per prune.
+    pruned: semantic guidance only: numpy GaussianParams of the rows the
+      semantic rule removed, as they were when removed (None if none were;
+      rows removed before a resume are not kept).
   """
   state: TrainState
   cfg: config_lib.Config
@@ -293,6 +307,7 @@ class FitResult:
   log: list[dict[str, float]]
   scores: list[dict[str, Any]]
   prune_events: list[dict[str, Any]]
+  pruned: gaussians.GaussianParams | None = None
 
 
 def _check_finite(step: int, values: dict[str, float]) -> None:
@@ -367,6 +382,7 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
   curve: list[dict[str, float]] = []
   scores: list[dict[str, Any]] = []
   prune_events: list[dict[str, Any]] = []
+  pruned: list[gaussians.GaussianParams] = []   # numpy rows per prune event
   train_seconds = 0.0
   if resume and os.path.exists(ckpt_path):
     state, meta = checkpoint.restore(ckpt_path, state)
@@ -392,13 +408,13 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
   start = int(state.step)
   log: list[dict[str, float]] = []
   pending: list[tuple[int, dict[str, jax.Array]]] = []   # unfetched scores
+  per_step_keys = guidance.per_step_keys(cfg.semantic)
 
   def flush_scores() -> None:
     for step, values in jax.device_get(pending):
-      if math.isfinite(float(values["s_hat_d"])):
-        scores.append({"step": step, "view": int(values["view"]),
-                       "s_hat_d": float(values["s_hat_d"]),
-                       "s_hat_s": _finite_or_none(values["s_hat_s"])})
+      if math.isfinite(float(values[per_step_keys[0]])):
+        scores.append({"step": step, "view": int(values["view"])} | {
+            k: _finite_or_none(values[k]) for k in per_step_keys[:-1]})
     pending.clear()
 
   def eval_point(step: int) -> None:
@@ -416,6 +432,30 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
                     extra={"curve": curve, "train_seconds": train_seconds,
                            "scores": scores, "prune_events": prune_events})
 
+  def semantic_prune(state: TrainState, step: int) -> TrainState:
+    """Eq. 13 through the guard; keeps the removed rows for the mask IoU."""
+    params_before = jax.device_get(state.params)
+    state, info = prune_fn(state)
+    info = jax.device_get(info)
+    rows = np.nonzero(info.pop("pruned_semantic"))[0]
+    pruned.append(jax.tree.map(lambda x: x[rows], params_before))
+    event = {"step": step} | {k: np.asarray(v).tolist()
+                              for k, v in info.items()}
+    prune_events.append(event)
+    if event["guarded"]:
+      _log.warning(
+          "step %d: semantic prune REFUSED: it would remove %d of %d "
+          "Gaussians, more than max_prune_fraction = %g; nothing removed. "
+          "The threshold is below the scores of most of the scene.", step,
+          event["num_refused"], event["num_alive_before"],
+          cfg.semantic.max_prune_fraction)
+    else:
+      _log.info("step %d: semantic prune removed %d (s_j > tau) + %d "
+                "(rarely seen, faint) of %d", step,
+                event["num_pruned_semantic"],
+                event["num_pruned_visibility"], event["num_alive_before"])
+    return state
+
   has_test = len(scene.test.images) > 0
   if start == 0 and has_test and cfg.train.eval_every:
     eval_point(0)
@@ -431,7 +471,7 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
       state, last_metrics = step_fn(state, batch, scorer)
       if scorer is not None:
         pending.append((step - 1, {k: last_metrics[k]
-                                   for k in _PER_STEP_KEYS}))
+                                   for k in per_step_keys}))
       if bar is not None:
         bar.update(1)
       # Evaluate the result of the optimisation steps, before this step's
@@ -446,22 +486,7 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
       # it runs before this step's densify (whose children start at n = 0)
       # and opacity reset (which would put every alpha under alpha_min).
       if guidance.prune_due(step, cfg):
-        state, info = prune_fn(state)
-        event = {k: np.asarray(v).tolist()
-                 for k, v in jax.device_get(info).items()}
-        prune_events.append({"step": step} | event)
-        _log.info("step %d: semantic prune removed %d (s_j > tau) + %d "
-                  "(rarely seen, faint) of %d", step,
-                  event["num_pruned_semantic"],
-                  event["num_pruned_visibility"], event["num_alive_before"])
-        removed = event["num_pruned_semantic"] + event["num_pruned_visibility"]
-        if removed > PRUNE_WARN_FRACTION * event["num_alive_before"]:
-          _log.warning(
-              "step %d: the semantic prune removed %d of %d Gaussians; tau "
-              "= %g is below the scores of most of the scene (every view "
-              "scoring alike, as when all training views are cluttered, "
-              "does that). Calibrate it: experiments/calibrate_tau.py.",
-              step, removed, event["num_alive_before"], cfg.semantic.tau)
+        state = semantic_prune(state, step)
       do_densify, do_reset = densify.due(step, cfg)
       if do_densify:
         state = _grow_if_needed(state, cfg)
@@ -474,7 +499,7 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
         flush_scores()
         values = {k: float(v) for k, v in
                   jax.device_get(last_metrics).items()
-                  if k not in _PER_STEP_KEYS}
+                  if k not in per_step_keys}
         if last_info is not None:
           values.update({k: float(v) for k, v in
                          jax.device_get(last_info).items()})
@@ -506,6 +531,8 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
   if start >= total:
     _log.info("checkpoint is already at step %d >= %d steps", start, total)
   flush_scores()
+  pruned_params = (jax.tree.map(lambda *x: np.concatenate(x), *pruned)
+                   if pruned else None)
   return FitResult(state=state, cfg=cfg, curve=curve,
                    train_seconds=train_seconds, log=log, scores=scores,
-                   prune_events=prune_events)
+                   prune_events=prune_events, pruned=pruned_params)

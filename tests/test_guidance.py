@@ -26,6 +26,9 @@ ORACLE = config.SemanticConfig(scorer="oracle")
 
 
 def _cfg(**semantic_fields):
+  """The oracle config; the prune guard is lifted (tests of eq. 13 itself;
+  the guard has its own tests)."""
+  semantic_fields.setdefault("max_prune_fraction", 1.0)
   return dataclasses.replace(
       DENSIFY_CFG, semantic=dataclasses.replace(ORACLE, **semantic_fields))
 
@@ -61,10 +64,6 @@ class ScheduleTest(parameterized.TestCase):
     self.assertEqual(due, list(range(5000, 20_000, 1000)))
     off = dataclasses.replace(cfg, semantic=config.SemanticConfig())
     self.assertFalse(any(guidance.prune_due(s, off) for s in range(20_001)))
-    no_prompts = dataclasses.replace(cfg, semantic=config.SemanticConfig(
-        scorer="clip", distractor_prompts=()))
-    self.assertFalse(no_prompts.semantic.enabled)
-    self.assertFalse(guidance.prune_due(5000, no_prompts))
     # The opacity-loss-only ablation never prunes.
     reg_only = dataclasses.replace(cfg, semantic=config.SemanticConfig(
         scorer="oracle", prune=False))
@@ -82,11 +81,24 @@ class ScheduleTest(parameterized.TestCase):
       ("tau", -0.1, "tau="), ("beta", 0.0, "beta="),
       ("score_every", 0, "score_every="), ("prune_every", 0, "prune_every="),
       ("oracle_saturation", 0.0, "oracle_saturation="),
-      ("distractor_prompts", ("a photo of a person", " "), "prompt is empty"))
+      ("distractor_prompts", ("a photo of a person", " "), "prompt is empty"),
+      ("evidence", "patch", "evidence="), ("tau_p", 1.5, "tau_p="),
+      ("max_prune_fraction", 0.0, "max_prune_fraction="),
+      ("loss_masking", True, "loss_masking needs evidence='pixel'"),
+      ("dense_input_size", 100, "dense_input_size="))
   def test_validate_names_the_field(self, field, value, message):
     sem = dataclasses.replace(ORACLE, **{field: value})
     with self.assertRaisesRegex(ValueError, message):
       guidance.validate(sem)
+
+  def test_clip_without_prompts_is_an_error(self):
+    # Silently training vanilla 3DGS instead (exit 0) was issue 15's bug.
+    with self.assertRaisesRegex(ValueError, "no distractor prompts"):
+      guidance.validate(config.SemanticConfig(scorer="clip",
+                                              distractor_prompts=()))
+    with self.assertRaisesRegex(ValueError, "needs static prompts"):
+      guidance.validate(config.SemanticConfig(
+          scorer="clip", evidence="pixel", static_prompts=()))
 
   def test_tau_edges_are_valid(self):
     guidance.validate(dataclasses.replace(ORACLE, tau=0.0))
@@ -113,8 +125,14 @@ class ScorerTest(absltest.TestCase):
 
   def test_off_imports_nothing(self):
     self.assertIsNone(guidance.make_scorer(config.SemanticConfig(), None))
-    self.assertIsNone(guidance.make_scorer(config.SemanticConfig(
-        scorer="clip", distractor_prompts=()), None))
+
+  def test_pixel_oracle_maps_are_the_masks(self):
+    scene = _masked_scene()
+    scorer = guidance.make_scorer(
+        config.SemanticConfig(scorer="oracle", evidence="pixel"), scene)
+    self.assertIsInstance(scorer, guidance.PixelMapScorer)
+    np.testing.assert_array_equal(scorer.score_map(jnp.int32(2)),
+                                  scene.train.masks[2].astype(np.float32))
 
   def test_score_and_accumulate(self):
     sem = config.SemanticConfig(scorer="oracle", accumulate_start=3,
@@ -259,14 +277,51 @@ class WiredStepTest(absltest.TestCase):
       return jax.jit(lambda s, b: train.train_step(s, b, cfg=c)).lower(
           state, batch).as_text()
     vanilla = lowered(cfg)
-    # Guidance off, or CLIP with no distractor prompts: the same program.
+    # Guidance off, whatever its other fields: the same program.
     for sem in (config.SemanticConfig(tau=0.3, beta=0.5),
-                config.SemanticConfig(scorer="clip", distractor_prompts=())):
+                config.SemanticConfig(evidence="pixel", tau_p=0.2)):
       self.assertEqual(lowered(dataclasses.replace(cfg, semantic=sem)),
                        vanilla)
     with self.assertRaisesRegex(ValueError, "takes no"):
       train.train_step(state, batch, guidance.OracleScorer(
           masks=jnp.zeros((8, 32, 32), bool), saturation=0.1), cfg=cfg)
+
+  def _pixel_step(self, map_value, **semantic_fields):
+    """One scored step of the pixel-evidence train step with a constant
+    map; returns (state before, state after, metrics)."""
+    scene = synthetic_scene()
+    sem = config.SemanticConfig(scorer="oracle", evidence="pixel",
+                                accumulate_start=0, **semantic_fields)
+    cfg = train.resolve(dataclasses.replace(TEST_CFG, semantic=sem), scene)
+    state = train.initial_state(cfg, scene)
+    maps = jnp.full(scene.train.images.shape[:3], map_value, jnp.float32)
+    after, metrics = jax.jit(functools.partial(train.train_step, cfg=cfg))(
+        state, train.make_batch(scene.train), guidance.PixelMapScorer(maps))
+    return state, after, metrics
+
+  def test_pixel_step_accumulates_the_map(self):
+    _, after, metrics = self._pixel_step(0.25)
+    stats = after.semantic
+    seen = np.asarray(stats.weight) > 0
+    self.assertGreater(seen.sum(), 10)
+    # Every pixel is 1/4 transient, so every contributing Gaussian's
+    # probability is 1/4, and n counts the one view.
+    np.testing.assert_allclose(np.asarray(stats.acc)[seen],
+                               0.25 * np.asarray(stats.weight)[seen],
+                               rtol=1e-5)
+    np.testing.assert_array_equal(np.asarray(stats.n), seen.astype(float))
+    self.assertAlmostEqual(float(metrics["map_mean"]), 0.25, places=6)
+
+  def test_loss_masking_ignores_masked_pixels(self):
+    # A fully transient map with loss masking: no pixel is fitted, so the
+    # colours do not move (the opacity loss touches opacities only).
+    before, after, _ = self._pixel_step(1.0, loss_masking=True,
+                                        reg_start=10_000)
+    np.testing.assert_array_equal(np.asarray(after.params.sh_dc),
+                                  np.asarray(before.params.sh_dc))
+    _, moved, _ = self._pixel_step(1.0, reg_start=10_000)
+    self.assertFalse(np.array_equal(np.asarray(moved.params.sh_dc),
+                                    np.asarray(before.params.sh_dc)))
 
   def test_oracle_fit(self):
     train.make_train_step.cache_clear()
@@ -303,26 +358,47 @@ class WiredStepTest(absltest.TestCase):
     self.assertEqual(again.prune_events, result.prune_events)
     self.assertNotIn("clipgs_jax.clip.scorer", sys.modules)
 
-  def test_prune_of_most_of_the_scene_warns(self):
+  def _fully_cluttered_fit(self, **semantic_fields):
     # Every view cluttered and tau = 0: every scored Gaussian exceeds tau,
-    # the situation of a fully cluttered benchmark (BUILD_NOTES, issue 6).
+    # the situation of a fully cluttered benchmark (BUILD_NOTES, issue 6),
+    # where the paper's rule deleted the whole scene.
     scene = _masked_scene()
     scene = dataclasses.replace(scene, train=dataclasses.replace(
         scene.train, masks=np.ones_like(scene.train.masks)))
     sem = config.SemanticConfig(
         scorer="oracle", accumulate_start=0, reg_start=0, prune_start=20,
-        prune_every=20, tau=0.0)
+        prune_every=20, tau=0.0, **semantic_fields)
     cfg = dataclasses.replace(TEST_CFG, semantic=sem,
                               train=dataclasses.replace(TEST_CFG.train,
                                                         steps=21))
+    return train.fit(cfg, scene, self.create_tempdir().full_path,
+                     scorer=guidance.make_scorer(sem, scene), progress=False)
+
+  def test_guard_refuses_a_prune_that_deletes_the_scene(self):
     with self.assertLogs("clipgs_jax.train", "WARNING") as logs:
-      result = train.fit(cfg, scene, self.create_tempdir().full_path,
-                         scorer=guidance.make_scorer(sem, scene),
-                         progress=False)
+      result = self._fully_cluttered_fit()
     event, = result.prune_events
+    self.assertTrue(event["guarded"])
+    self.assertEqual(event["num_pruned_semantic"], 0)
+    self.assertGreater(event["num_refused"], 0.5 * event["num_alive_before"])
+    self.assertEqual(int(result.state.alive.sum()),
+                     event["num_alive_before"])
+    self.assertIn("REFUSED", "\n".join(logs.output))
+    summary = guidance.summarize(result.prune_events,
+                                 int(result.state.alive.sum()),
+                                 result.state.semantic)
+    self.assertEqual(summary["num_refused_prune_events"], 1)
+    self.assertEqual(summary["refused_prune_steps"], [20])
+    self.assertIsNotNone(result.pruned)
+    self.assertEqual(len(result.pruned.means), 0)
+
+  def test_guard_lifted_reproduces_the_paper(self):
+    result = self._fully_cluttered_fit(max_prune_fraction=1.0)
+    event, = result.prune_events
+    self.assertFalse(event["guarded"])
     self.assertGreater(event["num_pruned_semantic"],
-                       train.PRUNE_WARN_FRACTION * event["num_alive_before"])
-    self.assertIn("Calibrate it", "\n".join(logs.output))
+                       0.5 * event["num_alive_before"])
+    self.assertEqual(len(result.pruned.means), event["num_pruned_semantic"])
 
   def test_fit_checks_the_scorer(self):
     scene = _masked_scene()
@@ -385,9 +461,8 @@ class NoClipImportTest(absltest.TestCase):
         s = scene.load_scene(default_scene.ensure_default_scene(),
                              downscale=4)
         for sem in (config.SemanticConfig(),
-                    config.SemanticConfig(scorer="clip",
-                                          distractor_prompts=()),
-                    config.SemanticConfig(scorer="oracle")):
+                    config.SemanticConfig(scorer="oracle"),
+                    config.SemanticConfig(scorer="oracle", evidence="pixel")):
           guidance.make_scorer(sem, s)
         clip = [m for m in sys.modules if m.startswith("clipgs_jax.clip")]
         assert not clip, clip

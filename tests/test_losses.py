@@ -133,3 +133,21 @@ class PhotometricTest(absltest.TestCase):
 
 if __name__ == "__main__":
   absltest.main()
+
+
+def test_weighted_photometric():
+  rng = np.random.default_rng(0)
+  pred = jnp.asarray(rng.uniform(size=(20, 24, 3)), jnp.float32)
+  target = jnp.asarray(rng.uniform(size=(20, 24, 3)), jnp.float32)
+  plain, _ = losses.photometric(pred, target, 0.2)
+  ones, _ = losses.photometric(pred, target, 0.2, jnp.ones((20, 24)))
+  np.testing.assert_allclose(ones, plain, rtol=1e-5)
+  # Pixels with weight 0 do not matter: changing them leaves the loss.
+  weight = jnp.ones((20, 24)).at[:, :12].set(0.0)
+  a, _ = losses.photometric(pred, target, 0.2, weight)
+  b, _ = losses.photometric(pred, target.at[:10, :5].set(0.0), 0.2, weight)
+  # SSIM windows reach 5 px across the mask edge, L1 not at all.
+  np.testing.assert_allclose(a, b, rtol=1e-6)
+  g = jax.grad(lambda p: losses.photometric(p, target, 0.2, weight)[0])(pred)
+  assert float(jnp.abs(g[:, :6]).max()) == 0.0
+  assert float(jnp.abs(g[:, 12:]).max()) > 0.0

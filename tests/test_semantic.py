@@ -146,6 +146,46 @@ class NormalizeLossPruneTest(parameterized.TestCase):
                                   tau=0.015, n_min=10, alpha_min=0.1)
     np.testing.assert_array_equal(vis, [True, False])
 
+  def test_pixel_evidence_is_a_probability(self):
+    stats = densify.SemanticStats.zeros(3)
+    # Row 0 lies fully on transient pixels, row 1 half, row 2 unseen.
+    evidence = jnp.array([2.0, 0.5, 0.0])
+    contribution = jnp.array([2.0, 1.0, 0.0])
+    visible = contribution > 0
+    for _ in range(2):
+      stats = semantic.accumulate_pixel(stats, evidence, contribution,
+                                        visible, jnp.bool_(True))
+    # A step that does not score leaves everything unchanged.
+    stats = semantic.accumulate_pixel(stats, evidence, contribution, visible,
+                                      jnp.bool_(False))
+    np.testing.assert_allclose(semantic.normalized_scores(stats),
+                               [1.0, 0.5, 0.0])
+    np.testing.assert_allclose(stats.weight, [4.0, 2.0, 0.0])
+    np.testing.assert_allclose(stats.n, [2.0, 2.0, 0.0])
+
+  def test_min_weight_keeps_thin_evidence(self):
+    # s = 1 on both rows, but row 1 has under one pixel of evidence.
+    stats = _stats([3.0, 0.4], [3.0, 1.0], weight=[3.0, 0.4])
+    sem, _ = semantic.prune_masks(
+        stats, jnp.zeros(2), jnp.ones(2, bool), tau=0.5, n_min=0,
+        alpha_min=0.0, min_weight=semantic.MIN_EVIDENCE_WEIGHT)
+    np.testing.assert_array_equal(sem, [True, False])
+
+  @parameterized.named_parameters(
+      ("half_refused", 0.5, [True] * 3 + [False] * 3, True),
+      ("half_allowed", 0.5, [True] * 2 + [False] * 4, False),
+      ("lifted", 1.0, [True] * 6, False))
+  def test_guard_prune(self, max_fraction, wanted, guarded):
+    alive = jnp.ones(6, bool).at[5].set(False)       # 5 alive rows
+    sem = jnp.asarray(wanted) & alive
+    vis = jnp.zeros(6, bool)
+    # 3 of 5 > 0.5 is refused; 2 of 5 passes; 1.0 never refuses.
+    out_sem, out_vis, out_guarded = semantic.guard_prune(
+        sem, vis, alive, max_fraction)
+    self.assertEqual(bool(out_guarded), guarded)
+    np.testing.assert_array_equal(out_sem, sem & (not guarded))
+    self.assertFalse(bool(out_vis.any()))
+
   def test_three_float32_per_slot(self):
     self.assertEqual(semantic.state_bytes(densify.SemanticStats.zeros(1000)),
                      12000)

@@ -1,0 +1,74 @@
+"""Error-against-run-time plots: test MSE (log) against training seconds."""
+
+import json
+import os
+
+import matplotlib
+matplotlib.use("Agg")   # files only; no display on the training machines
+import matplotlib.pyplot as plt  # pylint: disable=g-import-not-at-top,wrong-import-position
+
+from clipgs_jax import checkpoint  # pylint: disable=g-import-not-at-top,wrong-import-position
+
+
+def _read(path: str) -> list[dict]:
+  with open(path) as f:
+    curve = json.load(f)
+  if not isinstance(curve, list) or not all(
+      {"step", "seconds", "test_psnr"} <= set(p) for p in curve):
+    raise ValueError(f"plots: {path} is not a list of {{step, seconds, "
+                     "test_psnr}} points; pass a curve.json from train.py.")
+  return curve
+
+
+def save_figure(fig, out_path: str) -> None:
+  """Lays out `fig`, writes it as a PNG atomically and closes it."""
+  fig.tight_layout()
+  try:
+    checkpoint.atomic_write(out_path, fig.savefig, ".png")
+  finally:
+    plt.close(fig)
+
+
+def plot(curve_paths: list[str], out_path: str,
+         labels: list[str] | None = None, x: str = "seconds") -> None:
+  """Writes the error-against-time plot of the given curves, atomically."""
+  if labels is not None and len(labels) != len(curve_paths):
+    raise ValueError(f"plots: {len(labels)} labels for "
+                     f"{len(curve_paths)} curves.")
+  fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
+  for i, path in enumerate(curve_paths):
+    curve = _read(path)
+    label = (labels[i] if labels else
+             os.path.basename(os.path.dirname(os.path.abspath(path))))
+    xs = [p[x] for p in curve]
+    mse = [10 ** (-p["test_psnr"] / 10) for p in curve]
+    ax.plot(xs, mse, marker="o", markersize=3, label=label)
+    if curve:
+      ax.annotate(f"{curve[-1]['test_psnr']:.2f} dB", (xs[-1], mse[-1]),
+                  textcoords="offset points", xytext=(4, 4), fontsize=8)
+  ax.set_yscale("log")
+  ax.set_xlabel("training time (s, evaluation excluded)" if x == "seconds"
+                else "step")
+  ax.set_ylabel("test MSE = 10^(-PSNR/10)")
+  ax.grid(True, which="both", alpha=0.3)
+  ax.legend(fontsize=8)
+  save_figure(fig, out_path)
+
+
+def side_by_side(images, titles: list[str], out_path: str,
+                 scale: int = 3) -> None:
+  """Writes float [H, W, 3] images in one row with a title each (PNG).
+
+  Pixels are repeated `scale` times (nearest), so small renders stay sharp.
+  """
+  if len(images) != len(titles):
+    raise ValueError(f"plots.side_by_side: {len(images)} images for "
+                     f"{len(titles)} titles.")
+  height, width = images[0].shape[:2]
+  fig, axes = plt.subplots(1, len(images), dpi=100, figsize=(
+      len(images) * width * scale / 100, height * scale / 100 + 0.5))
+  for ax, image, title in zip(axes, images, titles):
+    ax.imshow(image.clip(0.0, 1.0), interpolation="nearest")
+    ax.set_title(title, fontsize=9)
+    ax.axis("off")
+  save_figure(fig, out_path)

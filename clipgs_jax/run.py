@@ -1,0 +1,198 @@
+"""A run folder: train, evaluate and write every artefact of one run.
+
+The scripts in experiments/ and the notebook call `train_and_evaluate`;
+this module is the one place that knows the artefacts' names. Every file is
+written atomically (temp file + rename).
+"""
+
+import datetime
+import json
+import os
+import platform
+import resource
+import time
+from typing import Any
+
+import jax
+import numpy as np
+
+from clipgs_jax import checkpoint
+from clipgs_jax import config as config_lib
+from clipgs_jax import evaluation
+from clipgs_jax import guidance
+from clipgs_jax import plots
+from clipgs_jax import ply
+from clipgs_jax import train
+from clipgs_jax.data import images as images_lib
+from clipgs_jax.data import scene as scene_lib
+
+RUN_JSON = "run.json"            # the command-line choices (scene, ...)
+CONFIG_JSON = "config.json"      # the resolved config.Config
+METRICS_JSON = "metrics.json"    # test metrics, run time, semantic block
+CURVE_JSON = "curve.json"        # [{step, seconds, test_psnr}]
+CURVE_PNG = "curve.png"          # test error against training time
+SCORES_JSONL = "scores.jsonl"    # guided runs: one line per scored step
+PRUNE_EVENTS_JSON = "prune_events.json"  # guided runs: every prune event
+POINT_CLOUD_PLY = "point_cloud.ply"  # the alive Gaussians (3DGS layout)
+TEST_RENDERS = os.path.join("renders", "test")   # one PNG per test view
+
+
+def test_metrics(params, alive, views, cfg: config_lib.Config,
+                 lpips_net: str, renders_dir: str | None = None) -> dict:
+  """Test-set PSNR / SSIM / LPIPS, averaged per image, and optional renders.
+
+  Returns:
+    {"psnr", "ssim", "lpips": means over the views, "lpips_net",
+     "num_views", "seconds" (this evaluation's wall time), "per_image":
+     {view name: {"psnr", "ssim", "lpips"}}}.
+  """
+  tic = time.perf_counter()
+  result = evaluation.evaluate(params, alive, views, cfg, lpips_net=lpips_net,
+                               keep_images=renders_dir is not None)
+  if renders_dir is not None:
+    for name, image in zip(views.names, result["images"]):
+      stem = os.path.splitext(os.path.basename(name))[0]
+      images_lib.write_png(os.path.join(renders_dir, stem + ".png"), image)
+  return {
+      "psnr": result["mean/psnr"], "ssim": result["mean/ssim"],
+      "lpips": result["mean/lpips"], "lpips_net": lpips_net,
+      "num_views": len(views.names),
+      "seconds": time.perf_counter() - tic,
+      "per_image": {
+          name: {k: result[k][i] for k in ("psnr", "ssim", "lpips")}
+          for i, name in enumerate(views.names)},
+  }
+
+
+def _read_json(path: str, what: str) -> dict:
+  if not os.path.exists(path):
+    raise FileNotFoundError(f"{path} is missing ({what}); pass a run folder "
+                            "written by experiments/train.py.")
+  with open(path) as f:
+    return json.load(f)
+
+
+def load_run(workdir: str):
+  """(run.json dict, resolved config, scene) of a run folder.
+
+  A run.json without "train_split" (older runs) means "clutter".
+  """
+  run = _read_json(os.path.join(workdir, RUN_JSON), "scene and downscale")
+  cfg = config_lib.from_dict(_read_json(os.path.join(workdir, CONFIG_JSON),
+                                        "the resolved config"))
+  scene = scene_lib.load_scene(run["scene"], downscale=run["downscale"],
+                               train_split=run.get("train_split", "clutter"))
+  return run, cfg, scene
+
+
+def semantic_label(sem: config_lib.SemanticConfig) -> str:
+  """How tables and logs name a run's guidance; oracles say so."""
+  if not sem.enabled:
+    return "vanilla 3DGS"
+  variant = ""
+  if not sem.localized and sem.weighting != "visibility":
+    variant += f", {sem.weighting}-weighted accumulation"
+  if sem.loss_masking:
+    variant += ", loss masking"
+  if sem.lambda_c == 0:
+    variant += ", no opacity loss"
+  if not sem.prune:
+    variant += ", no pruning"
+  if sem.localized:
+    if sem.scorer == "oracle":
+      return ("localized CLIP-GS machinery, ORACLE-PIXEL scorer "
+              "(ground-truth masks, not CLIP)" + variant)
+    return f"localized CLIP-GS (dense {sem.clip_variant}{variant})"
+  if sem.scorer == "oracle":
+    return ("CLIP-GS machinery, ORACLE scorer (ground-truth masks, not CLIP)"
+            + variant)
+  return f"CLIP-GS ({sem.clip_variant}{variant})"
+
+
+def _write_semantic_logs(workdir: str, cfg: config_lib.Config,
+                         result: train.FitResult, scene) -> dict:
+  """scores.jsonl and prune_events.json; returns metrics.json's block."""
+  def write_lines(tmp):
+    with open(tmp, "w") as f:
+      for row in result.scores:
+        f.write(json.dumps(row) + "\n")
+  checkpoint.atomic_write(os.path.join(workdir, SCORES_JSONL), write_lines,
+                          ".jsonl")
+  checkpoint.write_json(os.path.join(workdir, PRUNE_EVENTS_JSON), {
+      "scorer": cfg.semantic.scorer, "evidence": cfg.semantic.evidence,
+      "histogram_edges": guidance.histogram_edges(cfg.semantic),
+      "events": result.prune_events})
+  state = result.state
+  block = guidance.summarize(result.prune_events,
+                             int(jax.device_get(state.alive.sum())),
+                             state.semantic)
+  block = {"scorer": cfg.semantic.scorer, "evidence": cfg.semantic.evidence,
+           "label": semantic_label(cfg.semantic),
+           "num_scored_steps": len(result.scores), **block}
+  if result.pruned is not None:
+    block["pruned_mask_iou"] = evaluation.transient_mask_iou(
+        result.pruned, scene.train, cfg)
+  return block
+
+
+def train_and_evaluate(cfg: config_lib.Config, scene, workdir: str, *,
+                       scorer=None, lpips_net: str = "alex",
+                       resume: bool = False, progress: bool = True,
+                       run_info: dict[str, Any] | None = None) -> dict:
+  """Trains on `scene`, evaluates on its test views, writes the run folder.
+
+  Args:
+    cfg: the config (scene-dependent fields are resolved here).
+    scene: a data.scene.Scene.
+    workdir: the run folder (created).
+    scorer: guidance.make_scorer(cfg.semantic, scene, ...), None when
+      guidance is off.
+    lpips_net: "alex" or "vgg", named in the metrics.
+    resume: continue from the folder's checkpoint.
+    progress: a tqdm bar.
+    run_info: extra run.json fields (scene path, downscale, argv, ...).
+  Returns:
+    The metrics.json dict.
+  """
+  cfg = train.resolve(cfg, scene)
+  os.makedirs(workdir, exist_ok=True)
+  checkpoint.write_json(os.path.join(workdir, RUN_JSON), dict(
+      run_info or {}, lpips_net=lpips_net,
+      guidance=semantic_label(cfg.semantic)))
+  checkpoint.write_json(os.path.join(workdir, CONFIG_JSON),
+                        config_lib.to_dict(cfg))
+  result = train.fit(cfg, scene, workdir, scorer=scorer, resume=resume,
+                     progress=progress)
+  state = result.state
+  test = test_metrics(state.params, state.alive, scene.test, cfg, lpips_net,
+                      renders_dir=os.path.join(workdir, TEST_RENDERS))
+  ply.write_ply(os.path.join(workdir, POINT_CLOUD_PLY), state.params,
+                state.alive)
+  curve_path = os.path.join(workdir, CURVE_JSON)
+  checkpoint.write_json(curve_path, result.curve)
+  plots.plot([curve_path], os.path.join(workdir, CURVE_PNG),
+             labels=[os.path.basename(os.path.normpath(workdir))])
+  final_log = result.log[-1] if result.log else {}
+  height, width = np.shape(scene.train.images)[1:3]
+  metrics = {
+      "test": test,
+      "train_seconds": result.train_seconds,
+      "steps": int(state.step),
+      "num_gaussians": int(jax.device_get(state.alive.sum())),
+      "capacity": state.capacity,
+      "peak_memory_bytes": resource.getrusage(
+          resource.RUSAGE_SELF).ru_maxrss * 1024,
+      "peak_memory_note": "process peak RSS (getrusage ru_maxrss x 1024)",
+      "final_train": {k: v for k, v in final_log.items()
+                      if not k.startswith("grad_norm")},
+      "image_size": [int(width), int(height)],
+      "num_train_views": len(scene.train.names),
+      "machine": f"{platform.node()} {platform.processor() or ''} "
+                 f"{os.cpu_count()} cpus, jax {jax.__version__} "
+                 f"{jax.default_backend()}",
+      "finished": datetime.datetime.now().isoformat(timespec="seconds"),
+  }
+  if cfg.semantic.enabled:
+    metrics["semantic"] = _write_semantic_logs(workdir, cfg, result, scene)
+  checkpoint.write_json(os.path.join(workdir, METRICS_JSON), metrics)
+  return metrics
