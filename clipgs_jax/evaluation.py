@@ -14,6 +14,12 @@ from clipgs_jax import rasterize
 from clipgs_jax.data import scene as scene_lib
 
 
+# A pixel is predicted transient where the flagged Gaussians cover more than
+# half of it: the same 0.5 cut that turns grey mask PNGs into booleans
+# (data.scene.MASK_THRESHOLD).
+MASK_ALPHA_THRESHOLD = 0.5
+
+
 @functools.lru_cache(maxsize=None)
 def _render_fn(render_cfg: config_lib.RenderConfig):
   def fn(params, alive, cam, bg, degree):
@@ -84,3 +90,78 @@ def evaluate(params: gaussians.GaussianParams, alive, views,
                         np.zeros((0, views.cameras.height,
                                   views.cameras.width, 3), np.float32))
   return result
+
+
+def mask_iou(alpha, mask, threshold: float = MASK_ALPHA_THRESHOLD
+             ) -> float | None:
+  """IoU of (alpha > threshold) against a ground-truth mask.
+
+  Args:
+    alpha: float [H, W], rendered opacity in [0, 1].
+    mask: bool [H, W], True = transient pixel.
+    threshold: float, alpha above which a pixel counts as predicted.
+
+  Returns:
+    float in [0, 1], or None when both are empty (the IoU is undefined).
+  """
+  alpha, mask = np.asarray(alpha), np.asarray(mask, bool)
+  if alpha.shape != mask.shape:
+    raise ValueError(f"mask_iou: alpha is {alpha.shape}, mask {mask.shape}.")
+  pred = alpha > threshold
+  union = np.count_nonzero(pred | mask)
+  if union == 0:
+    return None
+  return np.count_nonzero(pred & mask) / union
+
+
+def iou_summary(names, alphas, masks) -> dict:
+  """Per-view and mean IoU over the views where it is defined.
+
+  Args:
+    names: V view names.
+    alphas: float [V, H, W], rendered alpha of the flagged Gaussians.
+    masks: bool [V, H, W], ground-truth transient masks.
+
+  Returns:
+    {"mean": float, or None if no view is scored, "per_view": {name: IoU
+    or None}, "num_views_scored": int, "alpha_threshold": float}.
+  """
+  per_view = {n: mask_iou(a, m) for n, a, m in zip(names, alphas, masks)}
+  scored = [v for v in per_view.values() if v is not None]
+  return {"mean": float(np.mean(scored)) if scored else None,
+          "per_view": per_view, "num_views_scored": len(scored),
+          "alpha_threshold": MASK_ALPHA_THRESHOLD}
+
+
+def transient_mask_iou(params: gaussians.GaussianParams, views,
+                       cfg: config_lib.Config) -> dict | None:
+  """IoU of a Gaussian subset's rendered alpha against the views' masks.
+
+  Used for the Gaussians a run's semantic prune removed (train.FitResult.
+  pruned): rendered alone into every training view, how well do they cover
+  the ground-truth transients?
+
+  Args:
+    params: numpy GaussianParams of the subset (every row is rendered).
+    views: data.scene.Views with masks.
+    cfg: the run's config (render settings, background).
+  Returns:
+    iou_summary's dict plus "num_gaussians", or None when the views have
+    no masks.
+  """
+  if views.masks is None:
+    return None
+  num = int(np.shape(params.means)[0])
+  if num == 0:
+    alphas = np.zeros(np.shape(views.masks), np.float32)
+  else:
+    # Pad to a power of two so runs with similar counts share one compile.
+    capacity = 1 << max(8, (num - 1).bit_length())
+    padded = jax.tree.map(
+        lambda x: np.concatenate(
+            [x, np.zeros((capacity - num,) + x.shape[1:], x.dtype)]), params)
+    alive = np.arange(capacity) < num
+    alphas = np.stack([np.asarray(a) for _, a, _ in
+                       renders(padded, alive, views, cfg)])
+  return iou_summary(views.names, alphas, views.masks) | {
+      "num_gaussians": num}

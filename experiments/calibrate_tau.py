@@ -39,7 +39,7 @@ import matplotlib.pyplot as plt  # pylint: disable=g-import-not-at-top,wrong-imp
 import numpy as np  # pylint: disable=g-import-not-at-top,wrong-import-position
 
 from clipgs_jax import checkpoint  # pylint: disable=g-import-not-at-top,wrong-import-position
-import plot_curve  # pylint: disable=g-import-not-at-top,wrong-import-position
+from clipgs_jax import plots  # pylint: disable=g-import-not-at-top,wrong-import-position
 import table  # pylint: disable=g-import-not-at-top,wrong-import-position
 
 FLAGS = flags.FLAGS
@@ -50,7 +50,7 @@ def _define_flags() -> None:
   table.define_run_flags()
   flags.DEFINE_string("benchmark", None, "Benchmark scene folder.")
   flags.DEFINE_list("taus", list(PAPER_TAUS), "Prune thresholds to run.")
-  flags.DEFINE_enum("semantic", "oracle", list(table.GUIDED_ROWS),
+  flags.DEFINE_enum("semantic", "oracle", ["oracle", "clip"],
                     "Scorer of the guided runs.")
   flags.DEFINE_string("clip_weights", None, "CLIP weights (--semantic=clip).")
   flags.DEFINE_string("out", None, "Output folder (default "
@@ -168,7 +168,7 @@ def plot_histograms(events_by_tau: dict[float, dict], out_path: str) -> None:
   ax.set_ylabel("alive Gaussians")
   ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.18),
             ncol=2)
-  plot_curve.save_figure(fig, out_path)
+  plots.save_figure(fig, out_path)
 
 
 def main(argv):

@@ -13,26 +13,20 @@ new and the stored numbers side by side.
 import json
 import os
 import sys
-import time
 
 from absl import app
 from absl import flags
 from absl import logging
 
 from clipgs_jax import checkpoint
-from clipgs_jax import config as config_lib
-from clipgs_jax import evaluation
 from clipgs_jax import ply
+from clipgs_jax import run as run_lib
 from clipgs_jax import train
-from clipgs_jax.data import images as images_lib
-from clipgs_jax.data import scene as scene_lib
 
 FLAGS = flags.FLAGS
 
 
 def _define_flags() -> None:
-  # Defined only when run as a script: experiments/train.py imports
-  # `test_metrics`, and its --help must not list these.
   flags.DEFINE_string("workdir", None, "Run folder written by train.py.")
   flags.DEFINE_enum("source", "auto", ["auto", "checkpoint", "ply"],
                     "Where the Gaussians come from (auto: the checkpoint "
@@ -43,59 +37,11 @@ def _define_flags() -> None:
   flags.mark_flag_as_required("workdir")
 
 
-def test_metrics(params, alive, views, cfg: config_lib.Config,
-                 lpips_net: str, renders_dir: str | None = None) -> dict:
-  """Test-set PSNR / SSIM / LPIPS, averaged per image, and optional renders.
-
-  Returns:
-    {"psnr", "ssim", "lpips": means over the views, "lpips_net",
-     "num_views", "seconds" (this evaluation's wall time), "per_image":
-     {view name: {"psnr", "ssim", "lpips"}}}.
-  """
-  tic = time.perf_counter()
-  result = evaluation.evaluate(params, alive, views, cfg, lpips_net=lpips_net,
-                          keep_images=renders_dir is not None)
-  if renders_dir is not None:
-    for name, image in zip(views.names, result["images"]):
-      stem = os.path.splitext(os.path.basename(name))[0]
-      images_lib.write_png(os.path.join(renders_dir, stem + ".png"), image)
-  return {
-      "psnr": result["mean/psnr"], "ssim": result["mean/ssim"],
-      "lpips": result["mean/lpips"], "lpips_net": lpips_net,
-      "num_views": len(views.names),
-      "seconds": time.perf_counter() - tic,
-      "per_image": {
-          name: {k: result[k][i] for k in ("psnr", "ssim", "lpips")}
-          for i, name in enumerate(views.names)},
-  }
-
-
-def _read_json(path: str, what: str) -> dict:
-  if not os.path.exists(path):
-    raise FileNotFoundError(f"evaluate: {path} is missing; --workdir must be "
-                            f"a run folder written by train.py ({what}).")
-  with open(path) as f:
-    return json.load(f)
-
-
-def load_run(workdir: str):
-  """(run.json dict, resolved config, scene) of a run folder of train.py.
-
-  A run.json without "train_split" (older runs) means "clutter".
-  """
-  run = _read_json(os.path.join(workdir, "run.json"), "scene and downscale")
-  cfg = config_lib.from_dict(_read_json(os.path.join(workdir, "config.json"),
-                                        "the resolved config"))
-  scene = scene_lib.load_scene(run["scene"], downscale=run["downscale"],
-                               train_split=run.get("train_split", "clutter"))
-  return run, cfg, scene
-
-
 def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"unexpected arguments {argv[1:]}")
   workdir = FLAGS.workdir
-  run, cfg, scene = load_run(workdir)
+  run, cfg, scene = run_lib.load_run(workdir)
   ckpt = os.path.join(workdir, train.CHECKPOINT_NAME)
   ply_path = os.path.join(workdir, "point_cloud.ply")
   source = FLAGS.source
@@ -109,7 +55,7 @@ def main(argv):
       sys.exit(f"evaluate: {ply_path} is missing; pass --source=checkpoint.")
     params, alive = ply.read_ply(ply_path)
   lpips_net = FLAGS.lpips_net or run.get("lpips_net", "alex")
-  new = test_metrics(params, alive, scene.test, cfg, lpips_net)
+  new = run_lib.test_metrics(params, alive, scene.test, cfg, lpips_net)
   metrics_path = os.path.join(workdir, "metrics.json")
   stored = {}
   if os.path.exists(metrics_path):

@@ -30,7 +30,7 @@ import numpy as np
 from clipgs_jax import camera
 from clipgs_jax.data import images
 from clipgs_jax.data import scene as scene_lib
-import plot_curve  # experiments/, on sys.path as the script's folder
+from clipgs_jax import plots
 
 import matplotlib  # pylint: disable=g-bad-import-order
 matplotlib.use("Agg")   # files only; no display on the training machines
@@ -38,11 +38,15 @@ import matplotlib.pyplot as plt  # pylint: disable=g-import-not-at-top,wrong-imp
 
 FLAGS = flags.FLAGS
 
-ROWS = ("vanilla", "oracle", "clip", "clean")
+ROWS = ("vanilla", "oracle", "oracle_pixel", "oracle_pixel_masked", "clip",
+        "clip_pixel", "clean")
 LABELS = {
     "vanilla": "vanilla 3DGS",
     "oracle": "CLIP-GS (ORACLE scorer)",
+    "oracle_pixel": "localized (ORACLE-PIXEL)",
+    "oracle_pixel_masked": "localized + loss masking (ORACLE-PIXEL)",
     "clip": "CLIP-GS (CLIP)",
+    "clip_pixel": "localized (dense CLIP)",
     "clean": "clean upper bound",
 }
 INPUT_TITLE = "input (nearest training view, with transients)"
@@ -197,7 +201,7 @@ def make_grid(bench: str, scene_runs: str, out_path: str, views: int = 3,
              f"PSNR {view['psnr'][r]:.2f} dB")
     _panel(axes[k, -1], gt, head("ground truth") + test.names[i])
     summary["views"].append(view)
-  plot_curve.save_figure(fig, out_path)
+  plots.save_figure(fig, out_path)
   logging.info("figures: wrote %s", out_path)
   return summary
 
@@ -221,7 +225,7 @@ def make_curve(scene_runs: str, out_path: str) -> list[str]:
     logging.warning("figures: no curve.json in %s; no curve plot.",
                     scene_runs)
     return []
-  plot_curve.plot(paths, out_path, [LABELS[r] for r in rows])
+  plots.plot(paths, out_path, [LABELS[r] for r in rows])
   logging.info("figures: wrote %s", out_path)
   return rows
 

@@ -22,7 +22,6 @@ left out of the mean. Every file is written atomically.
 
 import json
 import os
-import sys
 
 from absl import app
 from absl import flags
@@ -34,20 +33,13 @@ from clipgs_jax import checkpoint
 from clipgs_jax import config as config_lib
 from clipgs_jax import densify
 from clipgs_jax import evaluation
+from clipgs_jax import run as run_lib
 from clipgs_jax import semantic
 from clipgs_jax import train
 from clipgs_jax.data import images as images_lib
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import evaluate  # pylint: disable=g-import-not-at-top,wrong-import-position
 
 FLAGS = flags.FLAGS
-
-# A pixel is predicted transient where the flagged Gaussians cover more than
-# half of it: the same 0.5 cut that turns grey mask PNGs into booleans
-# (data.scene.MASK_THRESHOLD).
-ALPHA_THRESHOLD = 0.5
-
 
 def _define_flags() -> None:
   # Defined only when run as a script, as in evaluate.py: tests import this
@@ -70,47 +62,6 @@ def select_transient(stats: densify.SemanticStats, alive, tau: float
   """
   scores = np.asarray(semantic.normalized_scores(stats))
   return np.asarray(alive, bool) & (scores > tau)
-
-
-def mask_iou(alpha, mask, threshold: float = ALPHA_THRESHOLD
-             ) -> float | None:
-  """IoU of (alpha > threshold) against a ground-truth mask.
-
-  Args:
-    alpha: float [H, W], rendered opacity in [0, 1].
-    mask: bool [H, W], True = transient pixel.
-    threshold: float, alpha above which a pixel counts as predicted.
-
-  Returns:
-    float in [0, 1], or None when both are empty (the IoU is undefined).
-  """
-  alpha, mask = np.asarray(alpha), np.asarray(mask, bool)
-  if alpha.shape != mask.shape:
-    raise ValueError(f"mask_iou: alpha is {alpha.shape}, mask {mask.shape}.")
-  pred = alpha > threshold
-  union = np.count_nonzero(pred | mask)
-  if union == 0:
-    return None
-  return np.count_nonzero(pred & mask) / union
-
-
-def iou_summary(names, alphas, masks) -> dict:
-  """Per-view and mean IoU over the views where it is defined.
-
-  Args:
-    names: V view names.
-    alphas: float [V, H, W], rendered alpha of the flagged Gaussians.
-    masks: bool [V, H, W], ground-truth transient masks.
-
-  Returns:
-    {"mean": float, or None if no view is scored, "per_view": {name: IoU
-    or None}, "num_views_scored": int, "alpha_threshold": float}.
-  """
-  per_view = {n: mask_iou(a, m) for n, a, m in zip(names, alphas, masks)}
-  scored = [v for v in per_view.values() if v is not None]
-  return {"mean": float(np.mean(scored)) if scored else None,
-          "per_view": per_view, "num_views_scored": len(scored),
-          "alpha_threshold": ALPHA_THRESHOLD}
 
 
 def _require(path: str, what: str) -> None:
@@ -138,7 +89,7 @@ def load(workdir: str):
         f"{ckpt} is missing; render needs the trained state (the PLY lacks "
         "the semantic scores): rerun experiments/train.py into this folder, "
         "or with --resume if it was interrupted.")
-  _, cfg, scene = evaluate.load_run(workdir)
+  _, cfg, scene = run_lib.load_run(workdir)
   state, _ = checkpoint.restore(ckpt, train.initial_state(cfg, scene))
   return cfg, scene, state
 
@@ -205,7 +156,7 @@ def render_masks(workdir: str, tau: float | None = None) -> dict | None:
     logging.info("scene %s has no masks/: no IoU computed.", scene.path)
     print("the scene has no ground-truth masks: no IoU computed")
     return None
-  block = iou_summary(scene.train.names, alphas, scene.train.masks)
+  block = evaluation.iou_summary(scene.train.names, alphas, scene.train.masks)
   block |= {"tau": tau, "num_gaussians_above_tau": num_chosen}
   metrics_path = os.path.join(workdir, "metrics.json")
   metrics = {}
@@ -216,7 +167,8 @@ def render_masks(workdir: str, tau: float | None = None) -> dict | None:
   checkpoint.write_json(metrics_path, metrics)
   skipped = len(alphas) - block["num_views_scored"]
   mean = "n/a" if block["mean"] is None else f"{block['mean']:.4f}"
-  print(f"mask IoU (alpha > {ALPHA_THRESHOLD}): mean {mean} over "
+  print(f"mask IoU (alpha > {evaluation.MASK_ALPHA_THRESHOLD}): mean {mean} "
+        "over "
         f"{block['num_views_scored']} views; {skipped} views left out (no "
         f"transient in the mask or the render); updated {metrics_path}")
   return block

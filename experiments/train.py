@@ -4,7 +4,9 @@
       [--steps=N] [--seed=S] [--preset=default|smoke] [--resume]
       [--random_background] [--lpips_net=alex|vgg] [--curve_points=20]
       [--tile_budget=K] [--checkpoint_every=N]
-      [--semantic=off|clip|oracle] [--distractor_prompts=P1,P2,...]
+      [--semantic=off|clip|oracle] [--evidence=image|pixel] [--tau_p=P]
+      [--loss_masking] [--max_prune_fraction=F]
+      [--distractor_prompts=P1,P2,...]
       [--static_prompts=...] [--tau=T] [--clip_weights=PATH]
       [--score_every=K] [--semantic_weighting=visibility|contribution]
       [--lambda_c=L] [--nosemantic_prune] [--scale_semantic_schedule]
@@ -43,34 +45,29 @@ scorer):
   metrics.json      gains "semantic": {"scorer", "label",
                     "num_pruned_semantic", "num_pruned_visibility",
                     "fraction_pruned", "semantic_bytes", ...}
-With --semantic=off or --distractor_prompts= (empty), CLIP is never
-imported and the train step is the vanilla 3DGS step.
+  metrics.json      with pixel evidence, also "pruned_mask_iou": the
+                    IoU of the semantically pruned Gaussians' rendered
+                    alpha against the training views' transient masks
+With --semantic=off, CLIP is never imported and the train step is the
+vanilla 3DGS step; --semantic=clip with no distractor prompts is an error.
 """
 
 import dataclasses
-import datetime
 import json
 import os
-import platform
-import resource
 import sys
 
 from absl import app
 from absl import flags
 from absl import logging
-import jax
 
-from clipgs_jax import checkpoint
 from clipgs_jax import config as config_lib
 from clipgs_jax import guidance
-from clipgs_jax import ply
+from clipgs_jax import run as run_lib
 from clipgs_jax import train
 from clipgs_jax.data import default_scene
 from clipgs_jax.data import scene as scene_lib
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import evaluate  # pylint: disable=g-import-not-at-top,wrong-import-position
-import plot_curve  # pylint: disable=g-import-not-at-top,wrong-import-position
 
 # Steps for the embedded default scene (128x96, 24 training views): the
 # default preset then trains and evaluates in under 10 minutes on a 2-core
@@ -109,9 +106,25 @@ _SEMANTIC = flags.DEFINE_enum(
     "semantic", "off", list(config_lib.SCORERS),
     "Semantic guidance scorer: off (vanilla 3DGS), clip (the paper: needs "
     "--clip_weights), oracle (benchmarks only: ground-truth masks).")
+_EVIDENCE = flags.DEFINE_enum(
+    "evidence", "image", list(config_lib.EVIDENCES),
+    "image: the paper's one score per rendered view (threshold --tau); "
+    "pixel: localized, a per-pixel transient map per training view "
+    "(oracle: the ground-truth mask, labelled ORACLE-PIXEL; clip: dense "
+    "CLIP), s_j a probability, threshold --tau_p.")
+_TAU_P = flags.DEFINE_float(
+    "tau_p", None, "Pixel evidence: prune where the probability s_j "
+    "exceeds this (default 0.5, the same for every scene).")
+_LOSS_MASKING = flags.DEFINE_bool(
+    "loss_masking", False, "Pixel evidence: weight the photometric loss "
+    "per pixel by 1 - m.")
+_MAX_PRUNE_FRACTION = flags.DEFINE_float(
+    "max_prune_fraction", None, "A semantic prune that would remove more "
+    "than this share of the alive Gaussians removes none (default 0.5; 1.0 "
+    "lifts the guard, as the paper-exact reproduction needs).")
 _DISTRACTOR_PROMPTS = flags.DEFINE_list(
     "distractor_prompts", list(config_lib.PAPER_DISTRACTOR_PROMPTS),
-    "Distractor prompt set D, comma-separated; empty turns guidance off.")
+    "Distractor prompt set D, comma-separated (--semantic=clip needs one).")
 _STATIC_PROMPTS = flags.DEFINE_list(
     "static_prompts", list(config_lib.PAPER_STATIC_PROMPTS),
     "Static prompt set S (s_hat_s is logged only), comma-separated.")
@@ -172,7 +185,12 @@ def config_from_flags(embedded: bool) -> config_lib.Config:
       cfg.semantic, scorer=_SEMANTIC.value,
       distractor_prompts=tuple(_DISTRACTOR_PROMPTS.value),
       static_prompts=tuple(_STATIC_PROMPTS.value),
-      weighting=_SEMANTIC_WEIGHTING.value, prune=_SEMANTIC_PRUNE.value)
+      weighting=_SEMANTIC_WEIGHTING.value, prune=_SEMANTIC_PRUNE.value,
+      evidence=_EVIDENCE.value, loss_masking=_LOSS_MASKING.value)
+  if _TAU_P.value is not None:
+    sem = dataclasses.replace(sem, tau_p=_TAU_P.value)
+  if _MAX_PRUNE_FRACTION.value is not None:
+    sem = dataclasses.replace(sem, max_prune_fraction=_MAX_PRUNE_FRACTION.value)
   if _LAMBDA_C.value is not None:
     sem = dataclasses.replace(sem, lambda_c=_LAMBDA_C.value)
   if _TAU.value is not None:
@@ -188,49 +206,10 @@ def config_from_flags(embedded: bool) -> config_lib.Config:
   return dataclasses.replace(cfg, semantic=sem)
 
 
-def semantic_label(sem: config_lib.SemanticConfig) -> str:
-  """How tables and logs name a run's guidance."""
-  if not sem.enabled:
-    return "vanilla 3DGS"
-  variant = ("" if sem.weighting == "visibility"
-             else f", {sem.weighting}-weighted accumulation")
-  if sem.lambda_c == 0:
-    variant += ", no opacity loss"
-  if not sem.prune:
-    variant += ", no pruning"
-  if sem.scorer == "oracle":
-    return ("CLIP-GS machinery, ORACLE scorer (ground-truth masks, not CLIP)"
-            + variant)
-  return f"CLIP-GS ({sem.clip_variant}{variant})"
-
-
-def write_semantic_logs(workdir: str, cfg: config_lib.Config,
-                        result: train.FitResult) -> dict:
-  """scores.jsonl and prune_events.json; returns metrics.json's block."""
-  def write_lines(tmp):
-    with open(tmp, "w") as f:
-      for row in result.scores:
-        f.write(json.dumps(row) + "\n")
-  checkpoint.atomic_write(os.path.join(workdir, "scores.jsonl"), write_lines,
-                          ".jsonl")
-  checkpoint.write_json(os.path.join(workdir, "prune_events.json"), {
-      "scorer": cfg.semantic.scorer,
-      "histogram_edges": guidance.histogram_edges(cfg.semantic),
-      "events": result.prune_events})
-  state = result.state
-  block = guidance.summarize(result.prune_events,
-                             int(jax.device_get(state.alive.sum())),
-                             state.semantic)
-  return {"scorer": cfg.semantic.scorer,
-          "label": semantic_label(cfg.semantic),
-          "num_scored_steps": len(result.scores), **block}
-
-
 def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"unexpected arguments {argv[1:]}")
   workdir = os.path.abspath(_WORKDIR.value)
-  os.makedirs(workdir, exist_ok=True)
   embedded = _SCENE.value is None
   scene_path = default_scene.ensure_default_scene() if embedded else (
       _SCENE.value)
@@ -244,57 +223,22 @@ def main(argv):
                "extent %.3f", scene_path, len(scene.train.names),
                len(scene.test.names), width, height, len(scene.points),
                scene.extent)
-  run = {"scene": os.path.abspath(scene_path), "embedded_scene": embedded,
-         "downscale": _DOWNSCALE.value, "train_split": _TRAIN_SPLIT.value,
-         "preset": _PRESET.value, "lpips_net": _LPIPS_NET.value,
-         "guidance": semantic_label(cfg.semantic),
-         "argv": sys.argv}
-  checkpoint.write_json(os.path.join(workdir, "run.json"), run)
-  checkpoint.write_json(os.path.join(workdir, "config.json"),
-                        config_lib.to_dict(cfg))
-
   try:
     scorer = guidance.make_scorer(cfg.semantic, scene,
                                   clip_weights=_CLIP_WEIGHTS.value)
   except (ValueError, FileNotFoundError) as e:
     raise app.UsageError(f"--semantic={cfg.semantic.scorer}: {e}") from e
-  result = train.fit(cfg, scene, workdir, scorer=scorer,
-                     resume=_RESUME.value, progress=True)
-  state = result.state
-  test = evaluate.test_metrics(
-      state.params, state.alive, scene.test, cfg, _LPIPS_NET.value,
-      renders_dir=os.path.join(workdir, "renders", "test"))
-  ply.write_ply(os.path.join(workdir, "point_cloud.ply"), state.params,
-                state.alive)
-  curve_path = os.path.join(workdir, "curve.json")
-  checkpoint.write_json(curve_path, result.curve)
-  plot_curve.plot([curve_path], os.path.join(workdir, "curve.png"),
-                  labels=[os.path.basename(workdir)])
-  final_log = result.log[-1] if result.log else {}
-  metrics = {
-      "test": test,
-      "train_seconds": result.train_seconds,
-      "steps": int(state.step),
-      "num_gaussians": int(jax.device_get(state.alive.sum())),
-      "capacity": state.capacity,
-      "peak_memory_bytes": resource.getrusage(
-          resource.RUSAGE_SELF).ru_maxrss * 1024,
-      "peak_memory_note": "process peak RSS (getrusage ru_maxrss x 1024)",
-      "final_train": {k: v for k, v in final_log.items()
-                      if not k.startswith("grad_norm")},
-      "image_size": [width, height],
-      "num_train_views": len(scene.train.names),
-      "machine": f"{platform.node()} {platform.processor() or ''} "
-                 f"{os.cpu_count()} cpus, jax {jax.__version__} "
-                 f"{jax.default_backend()}",
-      "finished": datetime.datetime.now().isoformat(timespec="seconds"),
-  }
-  if cfg.semantic.enabled:
-    metrics["semantic"] = write_semantic_logs(workdir, cfg, result)
-  checkpoint.write_json(os.path.join(workdir, "metrics.json"), metrics)
+  run_info = {"scene": os.path.abspath(scene_path), "embedded_scene": embedded,
+              "downscale": _DOWNSCALE.value, "train_split": _TRAIN_SPLIT.value,
+              "preset": _PRESET.value, "argv": sys.argv}
+  metrics = run_lib.train_and_evaluate(
+      cfg, scene, workdir, scorer=scorer, lpips_net=_LPIPS_NET.value,
+      resume=_RESUME.value, run_info=run_info)
+  test = metrics["test"]
   logging.info("test PSNR %.3f  SSIM %.4f  LPIPS(%s) %.4f  train %.1f s  "
                "%d Gaussians", test["psnr"], test["ssim"], test["lpips_net"],
-               test["lpips"], result.train_seconds, metrics["num_gaussians"])
+               test["lpips"], metrics["train_seconds"],
+               metrics["num_gaussians"])
   print(json.dumps({k: metrics[k] for k in
                     ("train_seconds", "steps", "num_gaussians")} |
                    {f"test.{k}": test[k] for k in

@@ -15,6 +15,7 @@ import pytest
 from clipgs_jax import checkpoint
 from clipgs_jax import config as config_lib
 from clipgs_jax import densify
+from clipgs_jax import evaluation
 from clipgs_jax import train
 from clipgs_jax.data import default_scene
 from clipgs_jax.data import scene as scene_lib
@@ -57,26 +58,26 @@ def test_mask_iou():
   alpha = np.array([[0.2, 0.6], [0.5, 0.9]], np.float32)
   mask = np.array([[False, True], [True, False]])
   # pred = alpha > 0.5 = [[F, T], [F, T]] (0.5 is not above): 1 / 3.
-  assert render.mask_iou(alpha, mask) == pytest.approx(1 / 3)
-  assert render.mask_iou(alpha, alpha > 0.5) == 1.0
+  assert evaluation.mask_iou(alpha, mask) == pytest.approx(1 / 3)
+  assert evaluation.mask_iou(alpha, alpha > 0.5) == 1.0
   # Nothing predicted, something true: 0.
-  assert render.mask_iou(np.zeros((2, 2)), mask) == 0.0
+  assert evaluation.mask_iou(np.zeros((2, 2)), mask) == 0.0
   # Both empty: undefined.
-  assert render.mask_iou(np.zeros((2, 2)), np.zeros((2, 2), bool)) is None
+  assert evaluation.mask_iou(np.zeros((2, 2)), np.zeros((2, 2), bool)) is None
   with pytest.raises(ValueError, match="mask_iou"):
-    render.mask_iou(np.zeros((2, 3)), mask)
+    evaluation.mask_iou(np.zeros((2, 3)), mask)
 
 
 def test_iou_summary_skips_empty_unions():
   alphas = np.array([[[0.9, 0.0]], [[0.0, 0.0]], [[0.9, 0.9]]])
   masks = np.array([[[True, True]], [[False, False]], [[True, False]]])
-  out = render.iou_summary(["a", "b", "c"], alphas, masks)
+  out = evaluation.iou_summary(["a", "b", "c"], alphas, masks)
   # a: 1/2, b: empty union, c: 1/2 -> mean 0.5 over 2 views.
   assert out["per_view"] == {"a": 0.5, "b": None, "c": 0.5}
   assert out["mean"] == 0.5
   assert out["num_views_scored"] == 2
   assert out["alpha_threshold"] == 0.5
-  assert render.iou_summary(["b"], alphas[1:2], masks[1:2])["mean"] is None
+  assert evaluation.iou_summary(["b"], alphas[1:2], masks[1:2])["mean"] is None
 
 
 @pytest.fixture(scope="module")
@@ -173,14 +174,14 @@ def test_bad_workdir(tmp_path):
 
 def test_render_masks_without_ground_truth(saved_run, monkeypatch):
   workdir, scene, _ = saved_run
-  load_run = render.evaluate.load_run
+  load_run = render.run_lib.load_run
 
   def without_masks(path):
     run, cfg, loaded = load_run(path)
     train_views = dataclasses.replace(loaded.train, masks=None)
     return run, cfg, dataclasses.replace(loaded, train=train_views)
 
-  monkeypatch.setattr(render.evaluate, "load_run", without_masks)
+  monkeypatch.setattr(render.run_lib, "load_run", without_masks)
   before = (workdir / "metrics.json").read_text()
   assert render.render_masks(str(workdir), tau=1.0) is None
   _check_pngs(workdir / "renders" / "masks", scene, 1)

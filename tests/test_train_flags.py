@@ -24,7 +24,13 @@ class SemanticFlagsTest(parameterized.TestCase):
       ("nothing_to_do", ["--semantic=oracle", "--lambda_c=0",
                          "--nosemantic_prune"], "leaves guidance nothing"),
       ("lambda_c", ["--semantic=oracle", "--lambda_c=-1"],
-       "lambda_c=-1.0 must be >= 0"))
+       "lambda_c=-1.0 must be >= 0"),
+      ("no_prompts", ["--semantic=clip", "--distractor_prompts="],
+       "no distractor prompts"),
+      ("tau_p", ["--semantic=oracle", "--evidence=pixel", "--tau_p=2"],
+       "tau_p=2.0 is not in [0, 1]"),
+      ("masking_needs_pixels", ["--semantic=oracle", "--loss_masking"],
+       "loss_masking needs evidence='pixel'"))
   def test_bad_flags(self, flags, message):
     env = dict(os.environ, PYTHONPATH=str(ROOT),
                CLIPGS_CLIP_WEIGHTS="")
