@@ -11,8 +11,14 @@ make_transient_benchmark.py), each one experiments/train.py subprocess
 into workroot/<benchmark basename>/<row>/ (log: train.log there):
   vanilla  --train_split=clutter --semantic=off
   oracle   --train_split=clutter --semantic=oracle --scale_semantic_schedule
-           (ground-truth masks, not CLIP: the table labels it ORACLE)
+           (the paper's image-level rule on ground-truth masks, not CLIP:
+           the table labels it ORACLE)
+  oracle_pixel         as oracle with --evidence=pixel (localized: the
+           ground-truth mask per pixel, labelled ORACLE-PIXEL)
+  oracle_pixel_masked  as oracle_pixel with --loss_masking
   clip     as oracle with --semantic=clip; only with --clip_weights
+  clip_pixel  as clip with --evidence=pixel (dense CLIP); only with
+           --clip_weights
   clean    --train_split=clean --semantic=off (the upper bound: the clean
            twins of the same training views)
 Every row gets the same --steps --downscale --seed --lpips_net and
@@ -45,15 +51,22 @@ FLAGS = flags.FLAGS
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TRAIN_SCRIPT = os.path.join(REPO_ROOT, "experiments", "train.py")
 
-ROWS = ("vanilla", "oracle", "clip", "clean")
-GUIDED_ROWS = ("oracle", "clip")
+ROWS = ("vanilla", "oracle", "oracle_pixel", "oracle_pixel_masked", "clip",
+        "clip_pixel", "clean")
+GUIDED_ROWS = ("oracle", "oracle_pixel", "oracle_pixel_masked", "clip",
+               "clip_pixel")
+CLIP_ROWS = ("clip", "clip_pixel")
 # Labels for rows without a metrics.json (failed); a finished guided row
 # takes train.py's semantic label, which names the scorer too.
 DEFAULT_LABELS = {
     "vanilla": "vanilla 3DGS (clutter)",
     "oracle": "CLIP-GS machinery, ORACLE scorer (ground-truth masks, not "
               "CLIP)",
+    "oracle_pixel": "localized CLIP-GS machinery, ORACLE-PIXEL scorer",
+    "oracle_pixel_masked": "localized CLIP-GS machinery, ORACLE-PIXEL "
+                           "scorer, loss masking",
     "clip": "CLIP-GS (CLIP scorer)",
+    "clip_pixel": "localized CLIP-GS (dense CLIP)",
     "clean": "3DGS on clean views (upper bound)",
 }
 # Lines of a failed row's train.log shown in the log and kept in the JSON.
@@ -99,12 +112,21 @@ def _define_flags() -> None:
                       "row.")
   flags.DEFINE_string("out", None, "Folder for table.md / table.json "
                       "(default: --workroot).")
+  flags.DEFINE_list("rows", None, f"Rows to run (default: all of "
+                    f"{', '.join(ROWS)} that apply).")
   flags.mark_flags_as_required(["benchmarks"])
 
 
-def row_names(clip_weights: str | None) -> list[str]:
-  """The rows of each benchmark, in table order."""
-  return [r for r in ROWS if r != "clip" or clip_weights]
+def row_names(clip_weights: str | None,
+              only: list[str] | None = None) -> list[str]:
+  """The rows of each benchmark, in table order (`only`: a subset)."""
+  if only:
+    unknown = set(only) - set(ROWS)
+    if unknown:
+      raise ValueError(f"unknown rows {sorted(unknown)}; choose from "
+                       f"{', '.join(ROWS)}.")
+  return [r for r in ROWS if (r not in CLIP_ROWS or clip_weights)
+          and (not only or r in only)]
 
 
 def row_flags(row: str, *, tau: float | None, weighting: str,
@@ -115,11 +137,18 @@ def row_flags(row: str, *, tau: float | None, weighting: str,
     return [f"--train_split={split}", "--semantic=off"]
   if row not in GUIDED_ROWS:
     raise ValueError(f"unknown row {row!r}; choose one of {ROWS}.")
-  out = ["--train_split=clutter", f"--semantic={row}",
-         "--scale_semantic_schedule", f"--semantic_weighting={weighting}"]
-  if tau is not None:
-    out.append(f"--tau={tau}")
-  if row == "clip":
+  scorer = "clip" if row in CLIP_ROWS else "oracle"
+  out = ["--train_split=clutter", f"--semantic={scorer}",
+         "--scale_semantic_schedule"]
+  if row in ("oracle", "clip"):
+    out.append(f"--semantic_weighting={weighting}")
+    if tau is not None:
+      out.append(f"--tau={tau}")
+  else:
+    out.append("--evidence=pixel")
+  if row == "oracle_pixel_masked":
+    out.append("--loss_masking")
+  if scorer == "clip":
     out.append(f"--clip_weights={clip_weights}")
   return out
 
@@ -155,22 +184,24 @@ def collect_row(scene: str, row: str, metrics: dict | None,
   Returns:
     dict with "scene", "row", "method", "status" ("ok" or "failed"),
     "error", "psnr", "ssim", "lpips", "lpips_net", "train_seconds",
-    "num_gaussians", "steps" and "fraction_pruned" (None for unguided
-    rows); numbers are None where unknown or non-finite.
+    "num_gaussians", "steps", "fraction_pruned" and "mask_iou" (the
+    pruned Gaussians' rendered alpha against the transient masks; None for
+    unguided rows and runs that pruned nothing); numbers are None where
+    unknown or non-finite.
   """
   out = {"scene": scene, "row": row, "method": DEFAULT_LABELS[row],
          "status": "failed" if (error or metrics is None) else "ok",
          "error": error or (None if metrics is not None else "no metrics"),
          "psnr": None, "ssim": None, "lpips": None, "lpips_net": None,
          "train_seconds": None, "num_gaussians": None, "steps": None,
-         "fraction_pruned": None}
+         "fraction_pruned": None, "mask_iou": None}
   if metrics is None:
     return out
   test = metrics.get("test", {})
   semantic = metrics.get("semantic")
   if row in GUIDED_ROWS and semantic and semantic.get("label"):
     out["method"] = semantic["label"]
-  if row == "oracle" and "ORACLE" not in out["method"]:
+  if row.startswith("oracle") and "ORACLE" not in out["method"]:
     # The oracle reads ground-truth masks; the table must never let it pass
     # for CLIP.
     out["method"] = "ORACLE: " + out["method"]
@@ -182,6 +213,8 @@ def collect_row(scene: str, row: str, metrics: dict | None,
       steps=metrics.get("steps"))
   if row in GUIDED_ROWS and semantic:
     out["fraction_pruned"] = _finite(semantic.get("fraction_pruned"))
+    iou = semantic.get("pruned_mask_iou") or {}
+    out["mask_iou"] = _finite(iou.get("mean"))
   return out
 
 
@@ -235,14 +268,16 @@ def format_markdown(rows: list[dict], settings: dict) -> str:
       "", "Every row: the same steps, downscale, seed and extra flags. "
       "ΔPSNR: guided minus vanilla 3DGS on the same scene; gap to clean: "
       "clean upper bound minus the row (dB). The ORACLE row scores views "
-      "with ground-truth masks, not CLIP.", "",
+      "with ground-truth masks, not CLIP. Mask IoU: the pruned Gaussians' "
+      "rendered alpha (> 0.5) against the training views' transient "
+      "masks.", "",
       f"| scene | method | PSNR | SSIM | LPIPS ({net}) | train s | "
-      "Gaussians | fraction pruned | ΔPSNR | gap to clean |",
-      "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+      "Gaussians | fraction pruned | mask IoU | ΔPSNR | gap to clean |",
+      "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
   for r in rows:
     if r["status"] != "ok":
       cells = [r["scene"], r["method"],
-               f"FAILED ({r['error']})"] + ["—"] * 7
+               f"FAILED ({r['error']})"] + ["—"] * 8
     else:
       guided = r["row"] in GUIDED_ROWS
       cells = [
@@ -251,6 +286,7 @@ def format_markdown(rows: list[dict], settings: dict) -> str:
           _fmt(r["train_seconds"], ".1f"),
           _fmt(r["num_gaussians"], "d"),
           _fmt(r["fraction_pruned"], ".3f") if guided else "—",
+          _fmt(r.get("mask_iou"), ".3f") if guided else "—",
           _fmt(r["delta_psnr"], "+.2f") if guided else "—",
           _fmt(r["gap_to_clean"], "+.2f") if r["row"] != "clean" else "—"]
     lines.append("| " + " | ".join(c.replace("|", "/") for c in cells)
@@ -327,7 +363,8 @@ def run_table(benchmarks: list[str], workroot: str, steps: int, *,
               downscale: int = 1, seed: int = 0, tau: float | None = None,
               weighting: str = "visibility", lpips_net: str = "alex",
               clip_weights: str | None = None, extra_flags: str = "",
-              out: str | None = None) -> list[dict]:
+              out: str | None = None,
+              only_rows: list[str] | None = None) -> list[dict]:
   """Runs every row of every benchmark and writes table.md / table.json.
 
   Returns:
@@ -340,7 +377,7 @@ def run_table(benchmarks: list[str], workroot: str, steps: int, *,
   extra = shlex.split(extra_flags)
   rows = []
   for bench, name in zip(benchmarks, names):
-    for row in row_names(clip_weights):
+    for row in row_names(clip_weights, only_rows):
       workdir = os.path.join(workroot, name, row)
       flags_ = row_flags(row, tau=tau, weighting=weighting,
                          clip_weights=clip_weights)
@@ -382,7 +419,7 @@ def main(argv):
       downscale=FLAGS.downscale, seed=FLAGS.seed, tau=FLAGS.tau,
       weighting=FLAGS.semantic_weighting, lpips_net=FLAGS.lpips_net,
       clip_weights=FLAGS.clip_weights, extra_flags=FLAGS.extra_flags,
-      out=FLAGS.out)
+      out=FLAGS.out, only_rows=FLAGS.rows)
   with open(os.path.join(FLAGS.out or FLAGS.workroot, "table.md")) as f:
     print(f.read())
   failed = [f"{r['scene']}/{r['row']}" for r in rows if r["status"] != "ok"]

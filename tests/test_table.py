@@ -70,16 +70,28 @@ class FormatTest(absltest.TestCase):
     vanilla, oracle, clip, clean = body
     self.assertIn("ORACLE", oracle)
     self.assertIn("| 21.50 |", oracle)
-    self.assertIn("| 0.125 | +1.50 | +2.50 |", oracle)
-    self.assertIn("| — | — | +4.00 |", vanilla)
+    self.assertIn("| 0.125 | n/a | +1.50 | +2.50 |", oracle)
+    self.assertIn("| — | — | — | +4.00 |", vanilla)
     self.assertIn("FAILED (exit code 3)", clip)
     self.assertIn("| 24.00 |", clean)
-    self.assertTrue(clean.endswith("| — | — | — |"), clean)
+    self.assertTrue(clean.endswith("| — | — | — | — |"), clean)
 
   def test_row_flags(self):
-    self.assertEqual(table.row_names(None), ["vanilla", "oracle", "clean"])
+    pixel = ["oracle_pixel", "oracle_pixel_masked"]
+    self.assertEqual(table.row_names(None),
+                     ["vanilla", "oracle", *pixel, "clean"])
     self.assertEqual(table.row_names("w.npz"),
-                     ["vanilla", "oracle", "clip", "clean"])
+                     ["vanilla", "oracle", *pixel, "clip", "clip_pixel",
+                      "clean"])
+    self.assertEqual(table.row_names(None, ["clean", "oracle_pixel"]),
+                     ["oracle_pixel", "clean"])
+    with self.assertRaisesRegex(ValueError, "unknown rows"):
+      table.row_names(None, ["bogus"])
+    masked = table.row_flags("oracle_pixel_masked", tau=0.1,
+                             weighting="contribution", clip_weights=None)
+    self.assertIn("--evidence=pixel", masked)
+    self.assertIn("--loss_masking", masked)
+    self.assertNotIn("--tau=0.1", masked)
     self.assertEqual(
         table.row_flags("clean", tau=0.1, weighting="contribution",
                         clip_weights=None),
@@ -100,7 +112,8 @@ class EndToEndTest(absltest.TestCase):
                JAX_DISABLE_MOST_OPTIMIZATIONS="1")
     cmd = [sys.executable, str(_REPO / "experiments" / "table.py"),
            f"--benchmarks={scene}", f"--workroot={root}", "--steps=10",
-           "--downscale=4", "--extra_flags=--preset=smoke --curve_points=1"]
+           "--downscale=4", "--extra_flags=--preset=smoke --curve_points=1",
+           "--rows=vanilla,oracle_pixel,clean"]
     start = time.monotonic()
     proc = subprocess.run(cmd, cwd=_REPO, env=env, capture_output=True,
                           text=True, check=False)
@@ -114,7 +127,8 @@ class EndToEndTest(absltest.TestCase):
     with open(os.path.join(root, "table.json")) as f:
       out = json.load(f)
     rows = out["rows"]
-    self.assertEqual([r["row"] for r in rows], ["vanilla", "oracle", "clean"])
+    self.assertEqual([r["row"] for r in rows],
+                     ["vanilla", "oracle_pixel", "clean"])
     for r in rows:
       self.assertEqual(r["status"], "ok", r)
       self.assertEqual(r["steps"], 10)
