@@ -288,6 +288,13 @@ class ViTB32ParityTest(parameterized.TestCase):
     image = random_render(3, (60, 80))
     pixels = np.asarray(preprocess.preprocess(image[None], size=448))
     got = s.score_map(jnp.asarray(image), jnp.int32(0))
+    # Random B/32 maps are nearly flat (range ~3e-3), so the features are
+    # compared too (same compiled encoder as inside score_map).
+    features = dense.encode_dense(params, jnp.asarray(pixels), config=config,
+                                  readout=s.readout)
+    np.testing.assert_allclose(
+        features.reshape(1, 14 * 14, -1),
+        torch_patch_features(hf, pixels, s.readout), atol=TOLERANCE, rtol=0)
     expected = torch_score_map(
         hf, pixels, s.readout, SEM.distractor_prompts + SEM.static_prompts,
         len(SEM.distractor_prompts), (60, 80))
