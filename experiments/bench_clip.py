@@ -1,6 +1,9 @@
 """Times the CLIP encoders on random weights; prints one JSON line per result.
 
   python experiments/bench_clip.py --variant=ViT-B/32 --batch_sizes=1,8
+  # The view scorers as the train step calls them, image-level and dense:
+  python experiments/bench_clip.py --noencoders --scorers \
+      --dense_input_sizes=224,448
 """
 
 import json
@@ -12,8 +15,11 @@ from absl import flags
 import jax
 import jax.numpy as jnp
 
+from clipgs_jax import config as config_lib
+from clipgs_jax.clip import dense
 from clipgs_jax.clip import model
 from clipgs_jax.clip import preprocess
+from clipgs_jax.clip import scorer
 from clipgs_jax.clip import tokenizer
 
 _VARIANT = flags.DEFINE_enum(
@@ -27,6 +33,19 @@ _RENDER_SIZE = flags.DEFINE_list(
     'render_size', ['378', '504'],
     'Height,width of the render that preprocessing resizes to 224x224.')
 _SEED = flags.DEFINE_integer('seed', 0, 'Seed of the random weights.')
+_ENCODERS = flags.DEFINE_bool(
+    'encoders', True, 'Time encode_image/encode_text/preprocess/text cache.')
+_SCORERS = flags.DEFINE_bool(
+    'scorers', False,
+    'Time the view scorers on one --render_size render, jitted as the train '
+    'step runs them: ClipScorer.score (paper, image-level) and '
+    'DenseClipScorer.score_map at each --dense_input_sizes.')
+_DENSE_INPUT_SIZES = flags.DEFINE_list(
+    'dense_input_sizes', [str(scorer.DENSE_INPUT_SIZE)],
+    'CLIP input sides for the dense scorer (multiples of the patch size).')
+_DENSE_READOUTS = flags.DEFINE_list(
+    'dense_readouts', [dense.DEFAULT_READOUT],
+    f'Dense readouts to time, of {dense.READOUTS}.')
 
 # The eight prompts of the CLIP-GS paper: five distractor, three static.
 PAPER_PROMPTS = (
@@ -62,14 +81,35 @@ def _emit(**fields):
   print(json.dumps(fields), flush=True)
 
 
-def main(argv):
-  if len(argv) > 1:
-    raise app.UsageError(f'Unexpected arguments: {argv[1:]}')
-  config = model.VARIANTS[_VARIANT.value]
-  params = model.init_params(config, jax.random.key(_SEED.value))
-  jax.block_until_ready(params)
-  common = dict(variant=_VARIANT.value, backend=jax.default_backend(),
-                devices=len(jax.devices()), runs=_RUNS.value)
+def _time_scorers(config, params, common):
+  """Times ClipScorer.score and DenseClipScorer.score_map on one render."""
+  h, w = map(int, _RENDER_SIZE.value)
+  render = jax.random.uniform(jax.random.key(2), (h, w, 3))
+  view = jnp.int32(0)
+  sem = config_lib.SemanticConfig(scorer='clip')  # the paper's prompts
+  image_level = scorer.make(sem, clip_params=(config, params))
+  score = jax.jit(lambda s, im: s.score(im, view))
+  first, median, best, cpu = _time_ms(lambda: score(image_level, render),
+                                      _RUNS.value, _WARMUP.value)
+  _emit(what='scorer_image_level', render_hw=[h, w],
+        input_size=config.image_size, first_call_ms=round(first, 1),
+        median_ms=round(median, 2), min_ms=round(best, 2),
+        median_cpu_ms=round(cpu, 2), **common)
+  score_map = jax.jit(lambda s, im: s.score_map(im, view))
+  for readout in _DENSE_READOUTS.value:
+    for input_size in map(int, _DENSE_INPUT_SIZES.value):
+      dense_scorer = scorer.make_dense(sem, clip_params=(config, params),
+                                       input_size=input_size, readout=readout)
+      first, median, best, cpu = _time_ms(
+          lambda: score_map(dense_scorer, render), _RUNS.value, _WARMUP.value)
+      _emit(what='scorer_dense', readout=readout, render_hw=[h, w],
+            input_size=input_size, grid=dense_scorer.grid,
+            first_call_ms=round(first, 1), median_ms=round(median, 2),
+            min_ms=round(best, 2), median_cpu_ms=round(cpu, 2), **common)
+
+
+def _time_encoders(config, params, common):
+  """Times the encoders, preprocessing, tokenizer and the text cache."""
   size = config.image_size
 
   for batch in map(int, _BATCH_SIZES.value):
@@ -120,6 +160,20 @@ def main(argv):
         first_miss_ms=round(misses[0], 1),
         miss_median_ms=round(statistics.median(misses[1:]), 2),
         hit_median_ms=round(hit, 4), **common)
+
+
+def main(argv):
+  if len(argv) > 1:
+    raise app.UsageError(f'Unexpected arguments: {argv[1:]}')
+  config = model.VARIANTS[_VARIANT.value]
+  params = model.init_params(config, jax.random.key(_SEED.value))
+  jax.block_until_ready(params)
+  common = dict(variant=_VARIANT.value, backend=jax.default_backend(),
+                devices=len(jax.devices()), runs=_RUNS.value)
+  if _SCORERS.value:
+    _time_scorers(config, params, common)
+  if _ENCODERS.value:
+    _time_encoders(config, params, common)
 
 
 if __name__ == '__main__':

@@ -72,3 +72,34 @@ def write_safetensors(path, tensors):
   pathlib.Path(path).write_bytes(
       struct.pack('<Q', len(encoded)) + encoded + b''.join(blobs)
   )
+
+
+def random_hf_model(config, seed):
+  """Returns a transformers CLIPModel with seeded random weights.
+
+  Faster than transformers' own initialisation (built on the meta device,
+  then filled once), and unlike it, LayerNorm scales and biases are not 1
+  and 0, so a swapped ln_1/ln_2 or a dropped bias would show. Needs torch
+  and transformers (imported here, so the other helpers do not).
+  """
+  import torch  # pylint: disable=g-import-not-at-top
+  import transformers  # pylint: disable=g-import-not-at-top
+
+  with torch.device('meta'):
+    hf = transformers.CLIPModel(config)
+  hf = hf.to_empty(device='cpu').eval()
+  generator = torch.Generator().manual_seed(seed)
+  with torch.no_grad():
+    for name, p in hf.named_parameters():
+      if p.ndim >= 2:  # matrices: unit-variance activations, U(-a, a)
+        bound = (3.0 / np.prod(p.shape[1:])) ** 0.5
+      else:
+        bound = 0.1
+      p.uniform_(-bound, bound, generator=generator)
+      if re.search(r'(norm|layrnorm)\d?\.weight$', name):
+        p.add_(1.0)
+    for name, b in hf.named_buffers():
+      # to_empty leaves buffers uninitialised; CLIP's only ones are these.
+      assert name.endswith('position_ids'), name
+      b.copy_(torch.arange(b.shape[-1]).expand_as(b))
+  return hf

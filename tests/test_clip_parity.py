@@ -79,33 +79,6 @@ _HF_BLOCK_TO_OPENAI = {
 }
 
 
-def random_hf_model(config, seed):
-  """Returns a CLIPModel with seeded random weights, all non-trivial.
-
-  Faster than transformers' own initialisation (built on the meta device,
-  then filled once), and unlike it, LayerNorm scales and biases are not 1
-  and 0, so a swapped ln_1/ln_2 or a dropped bias would show.
-  """
-  with torch.device('meta'):
-    hf = transformers.CLIPModel(config)
-  hf = hf.to_empty(device='cpu').eval()
-  generator = torch.Generator().manual_seed(seed)
-  with torch.no_grad():
-    for name, p in hf.named_parameters():
-      if p.ndim >= 2:  # matrices: unit-variance activations, U(-a, a)
-        bound = (3.0 / np.prod(p.shape[1:])) ** 0.5
-      else:
-        bound = 0.1
-      p.uniform_(-bound, bound, generator=generator)
-      if re.search(r'(norm|layrnorm)\d?\.weight$', name):
-        p.add_(1.0)
-    for name, b in hf.named_buffers():
-      # to_empty leaves buffers uninitialised; CLIP's only ones are these.
-      assert name.endswith('position_ids'), name
-      b.copy_(torch.arange(b.shape[-1]).expand_as(b))
-  return hf
-
-
 def openai_state_dict(hf_state):
   """Returns OpenAI's state dict layout of transformers CLIPModel tensors.
 
@@ -161,7 +134,7 @@ class ViTB32ParityTest(parameterized.TestCase):
   @classmethod
   def setUpClass(cls):
     super().setUpClass()
-    hf = random_hf_model(b32_hf_config(), seed=0)
+    hf = clip_testutil.random_hf_model(b32_hf_config(), seed=0)
     rng = np.random.default_rng(0)
     cls.images = rng.normal(size=(2, 224, 224, 3)).astype(np.float32)
     cls.tokens = tokenizer.tokenize(PROMPTS)

@@ -94,7 +94,7 @@ def quick_gelu(x: jax.Array) -> jax.Array:
   return x * jax.nn.sigmoid(1.702 * x)
 
 
-def _layer_norm(name: str) -> nn.LayerNorm:
+def layer_norm(name: str) -> nn.LayerNorm:
   # The two-pass variance: the CLIP residual stream has channels with large
   # means, where E[x^2] - E[x]^2 cancels badly in float32.
   return nn.LayerNorm(
@@ -145,8 +145,8 @@ class ResidualBlock(nn.Module):
   def __call__(self, x: jax.Array) -> jax.Array:
     """Args: x: float [B, L, W]. Returns: float [B, L, W]."""
     attn = SelfAttention(self.num_heads, self.causal, name='attn')
-    x = x + attn(_layer_norm('ln_1')(x))
-    return x + Mlp(self.mlp_ratio, name='mlp')(_layer_norm('ln_2')(x))
+    x = x + attn(layer_norm('ln_1')(x))
+    return x + Mlp(self.mlp_ratio, name='mlp')(layer_norm('ln_2')(x))
 
 
 class Transformer(nn.Module):
@@ -202,11 +202,11 @@ class VisionTransformer(nn.Module):
         [jnp.broadcast_to(cls.astype(x.dtype), (b, 1, w)), x], axis=1
     )  # [B, G*G+1, W]
     x = x + self.param('positional_embedding', init, (c.grid_size**2 + 1, w))
-    x = _layer_norm('ln_pre')(x)
+    x = layer_norm('ln_pre')(x)
     x = Transformer(
         c.vision_layers, c.vision_heads, c.mlp_ratio, name='transformer'
     )(x)
-    x = _layer_norm('ln_post')(x[:, 0])  # [B, W]
+    x = layer_norm('ln_post')(x[:, 0])  # [B, W]
     return x @ self.param('proj', init, (w, c.embed_dim))  # [B, E]
 
 
@@ -250,7 +250,7 @@ class TextTransformer(nn.Module):
         c.text_layers, c.text_heads, c.mlp_ratio, causal=True,
         name='transformer',
     )(x)
-    x = _layer_norm('ln_final')(x)
+    x = layer_norm('ln_final')(x)
     # The end token has the largest id, so argmax finds it (OpenAI's rule);
     # the causal mask makes the padding after it irrelevant.
     eot = jnp.argmax(tokens, axis=-1)  # [P]
