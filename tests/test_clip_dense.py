@@ -35,7 +35,8 @@ def hf_config(c):
   """transformers.CLIPConfig with the shapes of our ClipConfig c."""
   return transformers.CLIPConfig(
       text_config=dict(
-          hidden_size=c.text_width, intermediate_size=c.mlp_ratio * c.text_width,
+          hidden_size=c.text_width,
+          intermediate_size=c.mlp_ratio * c.text_width,
           num_hidden_layers=c.text_layers, num_attention_heads=c.text_heads,
           max_position_embeddings=c.context_length, vocab_size=c.vocab_size,
           hidden_act='quick_gelu', projection_dim=c.embed_dim,
