@@ -133,7 +133,8 @@ class SemanticConfig:
   #   per pixel by 1 - m (robust-3DGS style); off in the paper
   max_prune_fraction: float = 0.5  # a prune event that would remove more
   #   of the alive Gaussians than this removes none (1.0: the paper, no guard)
-  dense_input_size: int = 448  # clip + pixel: CLIP input side (B/32: 14x14)
+  dense_input_size: int = 448  # clip + pixel: CLIP input side, a multiple
+  #   of the patch size (B/32: a 14x14 patch grid)
 
   @property
   def enabled(self) -> bool:

@@ -114,9 +114,9 @@ def validate(sem: config_lib.SemanticConfig) -> None:
                     "(0, 1] (1.0 lifts the guard)")
   if sem.loss_masking and sem.evidence != "pixel":
     problems.append("loss_masking needs evidence='pixel' (a per-pixel map)")
-  if sem.dense_input_size < 32 or sem.dense_input_size % 32:
+  if sem.dense_input_size <= 0:
     problems.append(f"dense_input_size={sem.dense_input_size} must be a "
-                    "positive multiple of 32 (the ViT-B/32 patch)")
+                    "positive multiple of the ViT's patch size")
   if sem.weighting not in config_lib.WEIGHTINGS:
     problems.append(f"weighting={sem.weighting!r} is not one of "
                     f"{', '.join(config_lib.WEIGHTINGS)}")

@@ -85,7 +85,7 @@ class ScheduleTest(parameterized.TestCase):
       ("evidence", "patch", "evidence="), ("tau_p", 1.5, "tau_p="),
       ("max_prune_fraction", 0.0, "max_prune_fraction="),
       ("loss_masking", True, "loss_masking needs evidence='pixel'"),
-      ("dense_input_size", 100, "dense_input_size="))
+      ("dense_input_size", 0, "dense_input_size="))
   def test_validate_names_the_field(self, field, value, message):
     sem = dataclasses.replace(ORACLE, **{field: value})
     with self.assertRaisesRegex(ValueError, message):
@@ -448,6 +448,25 @@ class ClipScorerTest(absltest.TestCase):
     np.testing.assert_allclose(
         np.asarray(state.semantic.acc)[seen],
         0.1 * max(0.0, s_hat_d - 0.5), rtol=1e-5)
+
+
+  def test_dense_maps_of_the_training_views(self):
+    from clipgs_jax.clip import scorer as clip_scorer  # pylint: disable=g-import-not-at-top
+    scene = synthetic_scene()
+    sem = dataclasses.replace(self.sem, evidence="pixel",
+                              dense_input_size=64)     # 8x8 tiny patches
+    clip_params = (self.clip_config, self.params)
+    scorer = guidance.make_scorer(sem, scene, clip_params=clip_params)
+    self.assertIsInstance(scorer, guidance.PixelMapScorer)
+    self.assertEqual(scorer.maps.shape, scene.train.images.shape[:3])
+    self.assertTrue(bool(jnp.all((scorer.maps >= 0) & (scorer.maps <= 1))))
+    # Each map is the dense scorer's map of that training photo.
+    dense = clip_scorer.make_dense(sem, clip_params=clip_params,
+                                   input_size=64)
+    np.testing.assert_allclose(
+        scorer.score_map(jnp.int32(3)),
+        dense.score_map(jnp.asarray(scene.train.images[3]), jnp.int32(3)),
+        atol=1e-6)
 
 
 class NoClipImportTest(absltest.TestCase):
