@@ -295,13 +295,6 @@ def due(step: int, cfg: config_lib.Config) -> tuple[bool, bool]:
   return do_densify, do_reset
 
 
-def sh_degree(step: jax.Array, cfg: config_lib.Config) -> jax.Array:
-  """int32 [], active SH degree: +1 every sh_degree_every steps, capped."""
-  every = max(cfg.densify.sh_degree_every, 1)
-  return jnp.minimum(jnp.asarray(step, jnp.int32) // every,
-                     cfg.gaussians.sh_degree)
-
-
 @functools.lru_cache(maxsize=None)
 def make_densify(cfg: config_lib.Config):
   """Jitted densify(state, key) -> (state, info); the state is donated."""

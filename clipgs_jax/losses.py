@@ -108,11 +108,6 @@ def ssim(a: jax.Array, b: jax.Array, padding: str = "valid") -> jax.Array:
   return jnp.mean(ssim_map(a, b, padding), axis=(-3, -2, -1))
 
 
-def dssim(a: jax.Array, b: jax.Array, padding: str = "same") -> jax.Array:
-  """float [...], D-SSIM = 1 - SSIM (3DGS; not halved)."""
-  return 1.0 - ssim(a, b, padding)
-
-
 def photometric(pred: jax.Array, target: jax.Array, lambda_dssim: float,
                 weight: jax.Array | None = None
                 ) -> tuple[jax.Array, dict[str, jax.Array]]:

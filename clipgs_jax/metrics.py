@@ -19,13 +19,19 @@ from clipgs_jax import losses
 LPIPS_NETS = {"alex": "alexnet", "vgg": "vgg16"}
 
 
-def psnr(pred: jax.Array, target: jax.Array) -> jax.Array:
-  """float [...], PSNR in dB for peak 1: -10 log10(MSE) per image.
+# PSNR is capped where the MSE falls below this: identical images (a
+# converged training view, a clipped prediction) would otherwise give +inf,
+# which the host loop's finiteness check rejects and every mean turns into
+# inf. 1e-10 caps at 100 dB, far above any float32 render error that a
+# real image reaches (8-bit quantisation alone is ~59 dB).
+MIN_MSE = 1e-10
 
-  Identical images give +inf.
-  """
+
+def psnr(pred: jax.Array, target: jax.Array) -> jax.Array:
+  """float [...], PSNR in dB for peak 1: -10 log10(MSE) per image, at most
+  -10 log10(MIN_MSE) = 100 dB (identical images)."""
   mse = jnp.mean(jnp.square(pred - target), axis=(-3, -2, -1))
-  return -10.0 * jnp.log10(mse)
+  return -10.0 * jnp.log10(jnp.maximum(mse, MIN_MSE))
 
 
 def ssim(pred: jax.Array, target: jax.Array) -> jax.Array:

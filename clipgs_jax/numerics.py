@@ -36,13 +36,6 @@ def safe_sqrt(x: jax.Array) -> jax.Array:
   return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
 
 
-def safe_norm(x: jax.Array, axis: int = -1, keepdims: bool = False
-              ) -> jax.Array:
-  """Euclidean norm along `axis` with a zero gradient at the zero vector."""
-  sq = jnp.sum(x * x, axis=axis, keepdims=keepdims)
-  return safe_sqrt(jnp.where(sq > _tiny(x.dtype), sq, 0.0))
-
-
 def safe_normalize(x: jax.Array, axis: int = -1) -> jax.Array:
   """x / |x| along `axis`; the zero vector maps to zero with zero gradient."""
   sq = jnp.sum(x * x, axis=axis, keepdims=True)

@@ -21,6 +21,14 @@ _C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658,
 COLOR_OFFSET = 0.5
 
 
+def active_degree(step: jax.Array, every: int, max_degree: int
+                  ) -> jax.Array:
+  """int32 [], the SH degree trained at `step`: one more band every `every`
+  steps (3DGS: 1000), capped at `max_degree`."""
+  return jnp.minimum(jnp.asarray(step, jnp.int32) // max(every, 1),
+                     max_degree)
+
+
 def num_rest_coeffs(degree: int) -> int:
   """Number of non-DC coefficients per channel for an SH degree."""
   if not 0 <= degree <= MAX_DEGREE:

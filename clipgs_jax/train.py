@@ -28,6 +28,7 @@ from clipgs_jax import optim
 from clipgs_jax import project
 from clipgs_jax import rasterize
 from clipgs_jax import semantic as semantic_lib
+from clipgs_jax import sh
 from clipgs_jax.data import scene as scene_lib
 
 _log = logging.getLogger(__name__)
@@ -167,7 +168,8 @@ def train_step(state: TrainState, batch: Batch, scorer=None, *,
   cam = scene_lib.camera_at(batch.cameras, view)
   target = batch.images[view]
   bg = background(state.key, step, cfg)
-  degree = densify.sh_degree(step, cfg)
+  degree = sh.active_degree(step, cfg.densify.sh_degree_every,
+                           cfg.gaussians.sh_degree)
   sem = cfg.semantic
   localized = scorer is not None and sem.localized
   evidence_map = (jax.lax.stop_gradient(scorer.score_map(view))

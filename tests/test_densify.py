@@ -12,6 +12,7 @@ from clipgs_jax import densify
 from clipgs_jax import gaussians
 from clipgs_jax import optim
 from clipgs_jax import project
+from clipgs_jax import sh
 from clipgs_jax import train
 
 CFG = config.Config(
@@ -298,7 +299,9 @@ class ScheduleTest(absltest.TestCase):
     self.assertEqual(densify.due(14900, late), (True, False))
 
   def test_sh_degree(self):
-    got = [int(densify.sh_degree(s, CFG)) for s in (0, 999, 1000, 2500, 9000)]
+    got = [int(sh.active_degree(s, CFG.densify.sh_degree_every,
+                                CFG.gaussians.sh_degree))
+           for s in (0, 999, 1000, 2500, 9000)]
     self.assertEqual(got, [0, 0, 1, 1, 1])     # capped at sh_degree 1
 
 

@@ -30,21 +30,17 @@ class SafeExpTest(parameterized.TestCase):
                                 (jnp.array([-1.0, 0.5, 2.0]),), order=2)
 
 
-class SafeSqrtNormTest(parameterized.TestCase):
+class SafeSqrtNormalizeTest(parameterized.TestCase):
 
   def test_values(self):
     x = jnp.array([-4.0, 0.0, 4.0, 9.0])
     np.testing.assert_allclose(numerics.safe_sqrt(x), [0.0, 0.0, 2.0, 3.0])
     v = jnp.array([[3.0, 4.0, 0.0], [0.0, 0.0, 0.0]])
-    np.testing.assert_allclose(numerics.safe_norm(v), [5.0, 0.0])
     np.testing.assert_allclose(numerics.safe_normalize(v),
                                [[0.6, 0.8, 0.0], [0.0, 0.0, 0.0]])
-    np.testing.assert_allclose(
-        numerics.safe_norm(v, axis=0, keepdims=True), [[3.0, 4.0, 0.0]])
 
   @parameterized.named_parameters(
       ("sqrt", lambda x: numerics.safe_sqrt(x)),
-      ("norm", lambda x: numerics.safe_norm(jnp.stack([x, 2 * x], -1))),
       ("normalize", lambda x: numerics.safe_normalize(
           jnp.stack([x, 2 * x], -1))[..., 0]))
   def test_finite_output_and_gradient(self, fn):
@@ -58,14 +54,11 @@ class SafeSqrtNormTest(parameterized.TestCase):
   def test_zero_gradients_at_zero(self):
     self.assertEqual(float(jax.grad(numerics.safe_sqrt)(0.0)), 0.0)
     np.testing.assert_array_equal(
-        jax.grad(lambda v: numerics.safe_norm(v))(jnp.zeros(3)), 0.0)
-    np.testing.assert_array_equal(
         jax.jacobian(numerics.safe_normalize)(jnp.zeros(3)), 0.0)
 
   def test_check_grads(self):
     with jax.enable_x64(True):
       v = jnp.array([[0.3, -1.2, 2.0], [1.0, 0.5, -0.1]])
       jax.test_util.check_grads(numerics.safe_normalize, (v,), order=1)
-      jax.test_util.check_grads(numerics.safe_norm, (v,), order=1)
       jax.test_util.check_grads(numerics.safe_sqrt, (jnp.array([0.5, 3.]),),
                                 order=1)
