@@ -61,6 +61,7 @@ from absl import logging
 import jax
 
 from clipgs_jax import checkpoint
+from clipgs_jax import cli
 from clipgs_jax import config as config_lib
 from clipgs_jax import guidance
 from clipgs_jax import ply
@@ -227,23 +228,43 @@ def write_semantic_logs(workdir: str, cfg: config_lib.Config,
 
 
 def main(argv):
-  if len(argv) > 1:
-    raise app.UsageError(f"unexpected arguments {argv[1:]}")
-  workdir = os.path.abspath(_WORKDIR.value)
-  os.makedirs(workdir, exist_ok=True)
+  cli.no_arguments(argv)
+  # Every flag is checked before the scene or the weights are read.
+  cli.require(_DOWNSCALE.value >= 1, "downscale", _DOWNSCALE.value,
+              "must be a positive integer (1: full size)")
+  cli.require_folder("scene", _SCENE.value)
   embedded = _SCENE.value is None
+  flag_cfg = config_from_flags(embedded)
+  workdir = os.path.abspath(_WORKDIR.value)
+  ckpt_path = os.path.join(workdir, train.CHECKPOINT_NAME)
+  if _RESUME.value and os.path.exists(ckpt_path):
+    checkpoint.read_meta(ckpt_path)      # a corrupt file fails here, early
   scene_path = default_scene.ensure_default_scene() if embedded else (
       _SCENE.value)
-  if not os.path.isdir(scene_path):
-    raise app.UsageError(f"--scene={scene_path} is not a folder.")
   scene = scene_lib.load_scene(scene_path, downscale=_DOWNSCALE.value,
                                train_split=_TRAIN_SPLIT.value)
-  cfg = train.resolve(config_from_flags(embedded), scene)
+  cfg = train.resolve(flag_cfg, scene)
+  if _RESUME.value and os.path.exists(ckpt_path):
+    checkpoint.check_resumable(ckpt_path, cfg)
   height, width = scene.train.images.shape[1:3]
   logging.info("scene %s: %d train / %d test views, %dx%d, %d points, "
                "extent %.3f", scene_path, len(scene.train.names),
                len(scene.test.names), width, height, len(scene.points),
                scene.extent)
+  try:
+    scorer = guidance.make_scorer(cfg.semantic, scene,
+                                  clip_weights=_CLIP_WEIGHTS.value)
+  except (ValueError, FileNotFoundError) as e:
+    raise app.UsageError(f"--semantic={cfg.semantic.scorer}: {e}") from e
+  # Nothing is written before this point; a run that fails before its
+  # first checkpoint removes what it wrote.
+  with cli.output_dir(workdir, keep=train.CHECKPOINT_NAME):
+    _train_and_write(workdir, scene_path, embedded, scene, cfg, scorer)
+
+
+def _train_and_write(workdir, scene_path, embedded, scene, cfg, scorer):
+  """Trains, evaluates and writes every artefact into `workdir`."""
+  height, width = scene.train.images.shape[1:3]
   run = {"scene": os.path.abspath(scene_path), "embedded_scene": embedded,
          "downscale": _DOWNSCALE.value, "train_split": _TRAIN_SPLIT.value,
          "preset": _PRESET.value, "lpips_net": _LPIPS_NET.value,
@@ -252,12 +273,6 @@ def main(argv):
   checkpoint.write_json(os.path.join(workdir, "run.json"), run)
   checkpoint.write_json(os.path.join(workdir, "config.json"),
                         config_lib.to_dict(cfg))
-
-  try:
-    scorer = guidance.make_scorer(cfg.semantic, scene,
-                                  clip_weights=_CLIP_WEIGHTS.value)
-  except (ValueError, FileNotFoundError) as e:
-    raise app.UsageError(f"--semantic={cfg.semantic.scorer}: {e}") from e
   result = train.fit(cfg, scene, workdir, scorer=scorer,
                      resume=_RESUME.value, progress=True)
   state = result.state
@@ -302,4 +317,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  app.run(main)
+  cli.run(main)
