@@ -128,7 +128,9 @@ def _read(path: str, fn):
     raise FileNotFoundError(f"checkpoint {path} does not exist; check the "
                             "workdir, or run without resume to start over.")
   try:
-    with np.load(path, allow_pickle=False) as data:
+    # Our own file object: np.load leaves a path it opened open when the
+    # file is not a zip.
+    with open(path, "rb") as f, np.load(f, allow_pickle=False) as data:
       return fn(data)
   except CheckpointError:
     raise

@@ -125,7 +125,7 @@ def _reason(e: BaseException) -> str:
   if 'WeightsUnpickler error:' in text:
     text = text.split('WeightsUnpickler error:', 1)[1]
     text = text.split('. ')[0].strip()
-  elif 'pickle' in text.lower():
+  elif 'allow_pickle' in text:
     text = 'it holds pickled Python objects, which are never loaded'
   if 'weights_only' in text or 'allow_pickle' in text or 'trust' in text:
     text = ''
@@ -183,6 +183,10 @@ def _read_torch(path: pathlib.Path) -> dict[str, np.ndarray]:
         f'`python experiments/convert_clip.py --src={path} --dst=clip.npz` '
         'and pass the .npz instead.'
     ) from e
+  with open(path, 'rb') as f:
+    head = f.read(1)
+  if not zipfile.is_zipfile(path) and head != b'\x80':
+    raise ValueError('neither a torch.save zip archive nor a pickle')
   if _is_torchscript(path):
     with warnings.catch_warnings():
       # OpenAI released CLIP only as TorchScript, which torch now deprecates;
@@ -210,6 +214,9 @@ def _read_torch(path: pathlib.Path) -> dict[str, np.ndarray]:
 
 
 def _read_npz(path: pathlib.Path) -> dict[str, np.ndarray]:
+  if not zipfile.is_zipfile(path):
+    # np.load would try it as a pickle and talk about allow_pickle.
+    raise ValueError('not a zip archive, as every .npz is')
   with np.load(path, allow_pickle=False) as f:
     return {name: f[name] for name in f.files}
 
