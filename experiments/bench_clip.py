@@ -12,6 +12,7 @@ from absl import flags
 import jax
 import jax.numpy as jnp
 
+from clipgs_jax import cli
 from clipgs_jax.clip import model
 from clipgs_jax.clip import preprocess
 from clipgs_jax.clip import tokenizer
@@ -123,4 +124,4 @@ def main(argv):
 
 
 if __name__ == '__main__':
-  app.run(main)
+  cli.run(main)

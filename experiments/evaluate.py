@@ -20,6 +20,7 @@ from absl import flags
 from absl import logging
 
 from clipgs_jax import checkpoint
+from clipgs_jax import cli
 from clipgs_jax import config as config_lib
 from clipgs_jax import evaluation
 from clipgs_jax import ply
@@ -131,4 +132,4 @@ def main(argv):
 
 if __name__ == "__main__":
   _define_flags()
-  app.run(main)
+  cli.run(main)

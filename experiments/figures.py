@@ -28,6 +28,7 @@ from absl import logging
 import numpy as np
 
 from clipgs_jax import camera
+from clipgs_jax import cli
 from clipgs_jax.data import images
 from clipgs_jax.data import scene as scene_lib
 import plot_curve  # experiments/, on sys.path as the script's folder
@@ -260,4 +261,4 @@ def main(argv):
 
 if __name__ == "__main__":
   _define_flags()
-  app.run(main)
+  cli.run(main)

@@ -20,6 +20,7 @@ matplotlib.use("Agg")   # files only; no display on the training machines
 import matplotlib.pyplot as plt  # pylint: disable=g-import-not-at-top,wrong-import-position
 
 from clipgs_jax import checkpoint  # pylint: disable=g-import-not-at-top,wrong-import-position
+from clipgs_jax import cli  # pylint: disable=g-import-not-at-top,wrong-import-position
 
 FLAGS = flags.FLAGS
 
@@ -89,4 +90,4 @@ def main(argv):
 
 if __name__ == "__main__":
   _define_flags()
-  app.run(main)
+  cli.run(main)

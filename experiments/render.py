@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from clipgs_jax import checkpoint
+from clipgs_jax import cli
 from clipgs_jax import config as config_lib
 from clipgs_jax import densify
 from clipgs_jax import evaluation
@@ -235,4 +236,4 @@ def main(argv):
 
 if __name__ == "__main__":
   _define_flags()
-  app.run(main)
+  cli.run(main)
