@@ -333,6 +333,41 @@ class BadWeightsTest(_InProcess):
       self.assertIn("holds text", line)
 
 
+class OutputDirTest(absltest.TestCase):
+  """cli.output_dir removes exactly what a failed run created."""
+
+  def test_existing_folder_keeps_what_was_there(self):
+    root = self.create_tempdir().full_path
+    pathlib.Path(root, "notes.txt").write_text("mine")
+    with self.assertRaises(ValueError):
+      with cli.output_dir(root, keep=train.CHECKPOINT_NAME):
+        pathlib.Path(root, "run.json").write_text("{}")
+        os.makedirs(os.path.join(root, "renders", "test"))
+        raise ValueError("bad input")
+    self.assertEqual(os.listdir(root), ["notes.txt"])
+
+  def test_folder_with_a_checkpoint_stays(self):
+    # A run that fails after its first checkpoint can be resumed.
+    root = os.path.join(self.create_tempdir().full_path, "run")
+    with self.assertRaises(FloatingPointError):
+      with cli.output_dir(root, keep=train.CHECKPOINT_NAME):
+        pathlib.Path(root, train.CHECKPOINT_NAME).write_bytes(b"ckpt")
+        raise FloatingPointError("non-finite loss")
+    self.assertEqual(os.listdir(root), [train.CHECKPOINT_NAME])
+
+  def test_a_file_is_not_a_folder(self):
+    path = self.create_tempfile().full_path
+    with self.assertRaisesRegex(ValueError, "is a file; pass a new or "
+                                "existing folder"):
+      with cli.output_dir(path):
+        pass
+
+  def test_bugs_keep_their_traceback(self):
+    # Only user errors become one line; a bug propagates unchanged.
+    with self.assertRaises(ZeroDivisionError):
+      cli.guarded(lambda argv: 1 / 0)(["prog"])
+
+
 class _Unsafe:
   """A class that a weights-only unpickler must refuse."""
 
@@ -397,6 +432,15 @@ class TrainScriptTest(absltest.TestCase):
     self.assertIn("Traceback", stderr)
     self.assertStartsWith(stderr.splitlines()[-1], "error: corrupt COLMAP")
     self.assertFalse(os.path.exists(self.workdir))
+
+  def test_bad_weights_through_the_script(self):
+    path = os.path.join(self.tmp, "clip.safetensors")
+    pathlib.Path(path).write_text("not weights")
+    line = self.run_train(f"--scene={self.scene}", "--semantic=clip",
+                          f"--clip_weights={path}", code=cli.EXIT_USAGE,
+                          says=("--semantic=clip", path, "safetensors",
+                                "pass CLIP ViT-B/32 weights"))
+    self.assertNotIn("weights_only", line)
 
   def test_resume_with_another_config_keeps_the_run(self):
     os.makedirs(self.workdir)
