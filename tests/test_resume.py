@@ -2,15 +2,13 @@
 
 import dataclasses
 
-import chex
-import jax
-import jax.numpy as jnp
 import numpy as np
 from absl.testing import absltest
 
 from clipgs_jax import config
 from clipgs_jax import guidance
 from clipgs_jax import train
+from test_checkpoint import _assert_states_equal  # pylint: disable=g-bad-import-order
 from test_train import synthetic_scene  # pylint: disable=g-bad-import-order
 
 # The run is killed after this many steps: after the capacity growth at the
@@ -45,15 +43,6 @@ def _config():
   return dataclasses.replace(
       cfg, semantic=sem,
       gaussians=dataclasses.replace(cfg.gaussians, capacity=CAPACITY))
-
-
-def _assert_states_equal(a, b):
-  a, b = jax.device_get(a), jax.device_get(b)
-  np.testing.assert_array_equal(jax.random.key_data(a.key),
-                                jax.random.key_data(b.key))
-  strip = lambda s: s.replace(key=jnp.zeros(()))
-  chex.assert_trees_all_equal(strip(a), strip(b))
-  chex.assert_trees_all_equal_dtypes(strip(a), strip(b))
 
 
 class KillAndResumeTest(absltest.TestCase):
