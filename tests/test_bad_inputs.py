@@ -412,6 +412,12 @@ class TrainScriptTest(absltest.TestCase):
                    code=cli.EXIT_USAGE,
                    says=("--downscale=0", "positive integer"))
 
+  def test_unparsable_flag(self):
+    # absl's parse error, without its help hint line.
+    self.run_train(f"--scene={self.scene}", "--steps=abc",
+                   code=cli.EXIT_USAGE, says=("--steps=abc", "invalid literal",
+                                              "--helpshort"))
+
   def test_flags_are_checked_before_the_scene(self):
     # The scene is broken too, but the flag is reported: nothing was read.
     os.remove(os.path.join(self.scene, "sparse", "0", "cameras.bin"))
