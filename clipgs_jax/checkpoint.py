@@ -11,6 +11,8 @@ import json
 import os
 import tempfile
 from typing import Any
+import zipfile
+import zlib
 
 import jax
 import jax.numpy as jnp
@@ -22,6 +24,15 @@ from clipgs_jax import densify
 # 2: SemanticStats gained `weight` (contribution-weighted s_j normaliser).
 VERSION = 2
 _PREFIX = "state/"
+
+
+# What np.load and NpzFile raise on a file that is not a whole .npz.
+_READ_ERRORS = (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile,
+                zlib.error)
+
+
+class CheckpointError(ValueError):
+  """A checkpoint that cannot be used; the message names the file and fix."""
 
 
 def _key_name(entry) -> str:
@@ -55,7 +66,14 @@ def atomic_write(path: str, write_fn, suffix: str = "") -> None:
                              prefix="." + os.path.basename(path) + ".")
   os.close(fd)
   try:
-    write_fn(tmp)
+    try:
+      write_fn(tmp)
+    except OSError as e:
+      if e.filename is not None or not e.errno:
+        raise
+      # The disk filled up (or the like) under a writer that does not name
+      # its file; name the destination.
+      raise OSError(e.errno, e.strerror, path) from e
     # mkstemp creates the file 0600; give it the usual umask-based mode.
     umask = os.umask(0)
     os.umask(umask)
@@ -96,20 +114,76 @@ def save(path: str, state, cfg: config_lib.Config,
   atomic_write(path, write, ".npz")
 
 
+def _unreadable(path: str, e: BaseException) -> CheckpointError:
+  reason = " ".join(str(e).split())[:120] or type(e).__name__
+  return CheckpointError(
+      f"checkpoint {path} is unreadable ({type(e).__name__}: {reason}); it "
+      "was cut short or is not a clipgs_jax checkpoint: delete it (or use a "
+      "new workdir) to start over")
+
+
+def _read(path: str, fn):
+  """fn(NpzFile) on the checkpoint at `path`; read errors name the file."""
+  if not os.path.exists(path):
+    raise FileNotFoundError(f"checkpoint {path} does not exist; check the "
+                            "workdir, or run without resume to start over.")
+  try:
+    # Our own file object: np.load leaves a path it opened open when the
+    # file is not a zip.
+    with open(path, "rb") as f, np.load(f, allow_pickle=False) as data:
+      return fn(data)
+  except CheckpointError:
+    raise
+  except FileNotFoundError:
+    raise
+  except _READ_ERRORS as e:
+    raise _unreadable(path, e) from e
+
+
 def read_meta(path: str) -> dict[str, Any]:
   """{"config": dict, "extra": dict, "version": int} of a checkpoint."""
-  with np.load(path, allow_pickle=False) as data:
-    return _meta(data, path)
+  return _read(path, lambda data: _meta(data, path))
 
 
 def _meta(data, path) -> dict[str, Any]:
   for key in ("meta/config", "meta/extra", "meta/version"):
     if key not in data:
-      raise ValueError(f"checkpoint: {path} has no {key}; it is not a "
-                       "clipgs_jax checkpoint.")
+      raise CheckpointError(f"checkpoint: {path} has no {key}; it is not a "
+                            "clipgs_jax checkpoint: delete it or use a new "
+                            "workdir.")
   return {"config": json.loads(str(data["meta/config"])),
           "extra": json.loads(str(data["meta/extra"])),
           "version": int(data["meta/version"])}
+
+
+def _differences(a: dict, b: dict, prefix: str = "") -> list[str]:
+  """'field: a -> b' for every leaf where two nested dicts differ."""
+  out = []
+  for k in sorted(set(a) | set(b)):
+    x, y = a.get(k), b.get(k)
+    if isinstance(x, dict) and isinstance(y, dict):
+      out += _differences(x, y, f"{prefix}{k}.")
+    elif x != y:
+      out.append(f"{prefix}{k}: {x} -> {y}")
+  return out
+
+
+def check_resumable(path: str, cfg: config_lib.Config) -> None:
+  """Raises CheckpointError unless `cfg` can continue the run at `path`.
+
+  Reads only the metadata, so a script can check before it creates or
+  writes anything.
+  """
+  meta = read_meta(path)
+  saved = json.loads(json.dumps(meta["config"]))
+  wanted = json.loads(json.dumps(config_lib.to_dict(cfg)))
+  if saved != wanted:
+    diff = _differences(saved, wanted)
+    more = f" and {len(diff) - 3} more" if len(diff) > 3 else ""
+    raise CheckpointError(
+        f"{path} was written with a different config ({'; '.join(diff[:3])}"
+        f"{more}); resume with the flags that wrote it, or use a new workdir "
+        "to start over.")
 
 
 def restore(path: str, template) -> tuple[Any, dict[str, Any]]:
@@ -122,37 +196,40 @@ def restore(path: str, template) -> tuple[Any, dict[str, Any]]:
   Returns:
     (state, meta) with meta as in `read_meta`.
   """
-  if not os.path.exists(path):
-    raise FileNotFoundError(f"checkpoint.restore: {path} does not exist.")
-  with np.load(path, allow_pickle=False) as data:
-    meta = _meta(data, path)
-    if meta["version"] != VERSION:
-      raise ValueError(f"checkpoint: {path} has format version "
-                       f"{meta['version']}, this code reads {VERSION}.")
-    capacity = data[_PREFIX + "alive"].shape[0]
-    if template.alive.shape[0] != capacity:
-      template = densify.resize(template, capacity)
-    names = flatten(template)
-    missing = [n for n in names if _PREFIX + n not in data]
-    if missing:
-      raise ValueError(f"checkpoint: {path} lacks {missing[:3]}; it was "
-                       "written for a different config or code version.")
-    leaves = []
-    for name, like in names.items():
-      value = data[_PREFIX + name]
-      if _is_prng_key(like):
-        expected = jax.random.key_data(like)
-        if value.shape != expected.shape or value.dtype != expected.dtype:
-          raise ValueError(f"checkpoint: {path} key data has shape "
-                           f"{value.shape}, expected {expected.shape}.")
-        leaves.append(jax.random.wrap_key_data(
-            value, impl=jax.random.key_impl(like)))
-        continue
-      like_dtype = jnp.result_type(like)
-      if value.shape != np.shape(like) or value.dtype != like_dtype:
-        raise ValueError(f"checkpoint: {path} entry {name} is {value.dtype} "
-                         f"{value.shape}, expected {like_dtype} "
-                         f"{np.shape(like)}.")
-      leaves.append(jnp.asarray(value))
+  return _read(path, lambda data: _restore(data, path, template))
+
+
+def _restore(data, path, template):
+  """`restore` on an open NpzFile."""
+  meta = _meta(data, path)
+  if meta["version"] != VERSION:
+    raise CheckpointError(f"checkpoint: {path} has format version "
+                          f"{meta['version']}, this code reads {VERSION}; "
+                          "start over in a new workdir.")
+  capacity = data[_PREFIX + "alive"].shape[0]
+  if template.alive.shape[0] != capacity:
+    template = densify.resize(template, capacity)
+  names = flatten(template)
+  missing = [n for n in names if _PREFIX + n not in data]
+  if missing:
+    raise CheckpointError(f"checkpoint: {path} lacks {missing[:3]}; it was "
+                          "written for a different config or code version.")
+  leaves = []
+  for name, like in names.items():
+    value = data[_PREFIX + name]
+    if _is_prng_key(like):
+      expected = jax.random.key_data(like)
+      if value.shape != expected.shape or value.dtype != expected.dtype:
+        raise CheckpointError(f"checkpoint: {path} key data has shape "
+                              f"{value.shape}, expected {expected.shape}.")
+      leaves.append(jax.random.wrap_key_data(
+          value, impl=jax.random.key_impl(like)))
+      continue
+    like_dtype = jnp.result_type(like)
+    if value.shape != np.shape(like) or value.dtype != like_dtype:
+      raise CheckpointError(f"checkpoint: {path} entry {name} is "
+                            f"{value.dtype} {value.shape}, expected "
+                            f"{like_dtype} {np.shape(like)}.")
+    leaves.append(jnp.asarray(value))
   state = jax.tree.unflatten(jax.tree.structure(template), leaves)
   return state, meta

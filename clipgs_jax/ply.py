@@ -108,6 +108,32 @@ def _read_header(f, path: str) -> tuple[int, np.dtype]:
   return count, np.dtype(fields)
 
 
+def _check_finite(records: np.ndarray, path: str) -> None:
+  """Raises ValueError naming the fields and rows with NaN or Inf values.
+
+  Such a file is rejected, not loaded with those rows dead: a trainer never
+  writes them (train.fit stops on non-finite values), so they mark a broken
+  producer or a damaged file, and a loader that quietly drops rows would
+  return a different model than the file claims to hold.
+  """
+  bad_rows = np.zeros(len(records), bool)
+  counts = {}
+  for name in records.dtype.names:
+    if records.dtype[name].kind != "f":
+      continue
+    bad = ~np.isfinite(records[name])
+    if bad.any():
+      counts[name] = int(bad.sum())
+      bad_rows |= bad
+  if counts:
+    fields = ", ".join(f"{n} in {c} rows" for n, c in counts.items())
+    first = int(np.argmax(bad_rows))
+    raise ValueError(
+        f"{path}: {int(bad_rows.sum())} of {len(records)} vertices hold NaN "
+        f"or Inf ({fields}; first row {first}); re-export the file or drop "
+        "those rows.")
+
+
 def read_ply(path: str, capacity: int | None = None
              ) -> tuple[gaussians.GaussianParams, jax.Array]:
   """Reads a 3DGS PLY (as written by `write_ply` or by 3DGS itself).
@@ -129,6 +155,7 @@ def read_ply(path: str, capacity: int | None = None
     raise ValueError(f"{path}: truncated, {len(data)} bytes of vertex data "
                      f"for {count} vertices of {dtype.itemsize} bytes.")
   records = np.frombuffer(data, dtype, count)
+  _check_finite(records, path)
   names = set(dtype.names)
   rest_ids = sorted(int(m.group(1)) for name in names
                     if (m := re.fullmatch(r"f_rest_(\d+)", name)))

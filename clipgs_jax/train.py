@@ -387,11 +387,8 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
   pruned: list[gaussians.GaussianParams] = []   # numpy rows per prune event
   train_seconds = 0.0
   if resume and os.path.exists(ckpt_path):
+    checkpoint.check_resumable(ckpt_path, cfg)
     state, meta = checkpoint.restore(ckpt_path, state)
-    saved = config_lib.from_dict(meta["config"])
-    if saved != cfg:
-      raise ValueError(f"train.fit: {ckpt_path} was written with a different "
-                       "config; resume with the same flags or a new workdir.")
     curve = list(meta["extra"].get("curve", []))
     train_seconds = float(meta["extra"].get("train_seconds", 0.0))
     scores = list(meta["extra"].get("scores", []))

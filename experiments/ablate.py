@@ -30,6 +30,7 @@ from absl import app
 from absl import flags
 
 from clipgs_jax import checkpoint
+from clipgs_jax import cli
 import table  # pylint: disable=g-import-not-at-top
 
 FLAGS = flags.FLAGS
@@ -156,4 +157,4 @@ def main(argv):
 
 if __name__ == "__main__":
   _define_flags()
-  app.run(main)
+  cli.run(main)

@@ -15,6 +15,7 @@ from absl import flags
 import jax
 import jax.numpy as jnp
 
+from clipgs_jax import cli
 from clipgs_jax import config as config_lib
 from clipgs_jax.clip import dense
 from clipgs_jax.clip import model
@@ -177,4 +178,4 @@ def main(argv):
 
 
 if __name__ == '__main__':
-  app.run(main)
+  cli.run(main)

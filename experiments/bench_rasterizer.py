@@ -11,13 +11,13 @@ backward, tile overflow and the longest tile list.
 import json
 import time
 
-from absl import app
 from absl import flags
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from clipgs_jax import camera
+from clipgs_jax import cli
 from clipgs_jax import config
 from clipgs_jax import gaussians
 from clipgs_jax import project
@@ -138,4 +138,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  app.run(main)
+  cli.run(main)

@@ -25,12 +25,12 @@ import json
 import statistics
 import time
 
-from absl import app
 from absl import flags
 import jax
 import jax.numpy as jnp
 
 from clipgs_jax import checkpoint
+from clipgs_jax import cli
 from clipgs_jax import config as config_lib
 from clipgs_jax import guidance
 from clipgs_jax import train
@@ -130,4 +130,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  app.run(main)
+  cli.run(main)

@@ -39,6 +39,7 @@ import matplotlib.pyplot as plt  # pylint: disable=g-import-not-at-top,wrong-imp
 import numpy as np  # pylint: disable=g-import-not-at-top,wrong-import-position
 
 from clipgs_jax import checkpoint  # pylint: disable=g-import-not-at-top,wrong-import-position
+from clipgs_jax import cli  # pylint: disable=g-import-not-at-top,wrong-import-position
 from clipgs_jax import plots  # pylint: disable=g-import-not-at-top,wrong-import-position
 import table  # pylint: disable=g-import-not-at-top,wrong-import-position
 
@@ -227,4 +228,4 @@ def main(argv):
 
 if __name__ == "__main__":
   _define_flags()
-  app.run(main)
+  cli.run(main)

@@ -16,6 +16,7 @@ from absl import app
 from absl import flags
 import jax
 
+from clipgs_jax import cli
 from clipgs_jax.clip import model
 from clipgs_jax.clip import weights
 
@@ -45,4 +46,4 @@ def main(argv):
 
 
 if __name__ == '__main__':
-  app.run(main)
+  cli.run(main)

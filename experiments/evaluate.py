@@ -19,6 +19,7 @@ from absl import flags
 from absl import logging
 
 from clipgs_jax import checkpoint
+from clipgs_jax import cli
 from clipgs_jax import ply
 from clipgs_jax import run as run_lib
 from clipgs_jax import train
@@ -77,4 +78,4 @@ def main(argv):
 
 if __name__ == "__main__":
   _define_flags()
-  app.run(main)
+  cli.run(main)

@@ -28,6 +28,7 @@ from absl import logging
 import numpy as np
 
 from clipgs_jax import camera
+from clipgs_jax import cli
 from clipgs_jax.data import images
 from clipgs_jax.data import scene as scene_lib
 from clipgs_jax import plots
@@ -264,4 +265,4 @@ def main(argv):
 
 if __name__ == "__main__":
   _define_flags()
-  app.run(main)
+  cli.run(main)

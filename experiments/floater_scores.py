@@ -18,11 +18,11 @@ static and floater rows, their median n_j, and the fraction of each pruned.
 import dataclasses
 import json
 
-from absl import app
 from absl import flags
 import jax
 import numpy as np
 
+from clipgs_jax import cli
 from clipgs_jax import config as config_lib
 from clipgs_jax import guidance
 from clipgs_jax import semantic
@@ -136,4 +136,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  app.run(main)
+  cli.run(main)

@@ -13,6 +13,7 @@ import sys
 from absl import app
 from absl import flags
 
+from clipgs_jax import cli
 from clipgs_jax import plots
 
 FLAGS = flags.FLAGS
@@ -38,4 +39,4 @@ def main(argv):
 
 if __name__ == "__main__":
   _define_flags()
-  app.run(main)
+  cli.run(main)

@@ -26,6 +26,8 @@ from absl import logging
 import numpy as np
 import pycolmap
 
+from clipgs_jax import cli
+
 FLAGS = flags.FLAGS
 
 SEED = 0
@@ -133,10 +135,14 @@ def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"unexpected arguments {argv[1:]}")
   try:
-    rec = reconstruct(FLAGS.images, FLAGS.workdir, FLAGS.camera_model,
-                      FLAGS.single_camera)
+    # A failed reconstruction leaves no workdir (or only what was there).
+    with cli.output_dir(FLAGS.workdir, keep="sparse"):
+      rec = reconstruct(FLAGS.images, FLAGS.workdir, FLAGS.camera_model,
+                        FLAGS.single_camera)
   except ValueError as e:
     raise app.UsageError(str(e)) from e
+  except RuntimeError as e:     # too few matches: the photos, not a bug
+    raise ValueError(str(e)) from e
   cams = ", ".join(f"{c.model.name} {np.round(c.params, 4).tolist()}"
                    for c in rec.cameras.values())
   error = rec.compute_mean_reprojection_error()
@@ -149,4 +155,4 @@ def main(argv):
 
 if __name__ == "__main__":
   _define_flags()
-  app.run(main)
+  cli.run(main)

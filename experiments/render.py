@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from clipgs_jax import checkpoint
+from clipgs_jax import cli
 from clipgs_jax import config as config_lib
 from clipgs_jax import densify
 from clipgs_jax import evaluation
@@ -187,4 +188,4 @@ def main(argv):
 
 if __name__ == "__main__":
   _define_flags()
-  app.run(main)
+  cli.run(main)

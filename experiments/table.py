@@ -45,6 +45,7 @@ from absl import flags
 from absl import logging
 
 from clipgs_jax import checkpoint
+from clipgs_jax import cli
 
 FLAGS = flags.FLAGS
 
@@ -430,4 +431,4 @@ def main(argv):
 
 if __name__ == "__main__":
   _define_flags()
-  app.run(main)
+  cli.run(main)

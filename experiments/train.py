@@ -61,6 +61,8 @@ from absl import app
 from absl import flags
 from absl import logging
 
+from clipgs_jax import checkpoint
+from clipgs_jax import cli
 from clipgs_jax import config as config_lib
 from clipgs_jax import guidance
 from clipgs_jax import run as run_lib
@@ -207,17 +209,24 @@ def config_from_flags(embedded: bool) -> config_lib.Config:
 
 
 def main(argv):
-  if len(argv) > 1:
-    raise app.UsageError(f"unexpected arguments {argv[1:]}")
-  workdir = os.path.abspath(_WORKDIR.value)
+  cli.no_arguments(argv)
+  # Every flag is checked before the scene or the weights are read.
+  cli.require(_DOWNSCALE.value >= 1, "downscale", _DOWNSCALE.value,
+              "must be a positive integer (1: full size)")
+  cli.require_folder("scene", _SCENE.value)
   embedded = _SCENE.value is None
+  flag_cfg = config_from_flags(embedded)
+  workdir = os.path.abspath(_WORKDIR.value)
+  ckpt_path = os.path.join(workdir, train.CHECKPOINT_NAME)
+  if _RESUME.value and os.path.exists(ckpt_path):
+    checkpoint.read_meta(ckpt_path)      # a corrupt file fails here, early
   scene_path = default_scene.ensure_default_scene() if embedded else (
       _SCENE.value)
-  if not os.path.isdir(scene_path):
-    raise app.UsageError(f"--scene={scene_path} is not a folder.")
   scene = scene_lib.load_scene(scene_path, downscale=_DOWNSCALE.value,
                                train_split=_TRAIN_SPLIT.value)
-  cfg = train.resolve(config_from_flags(embedded), scene)
+  cfg = train.resolve(flag_cfg, scene)
+  if _RESUME.value and os.path.exists(ckpt_path):
+    checkpoint.check_resumable(ckpt_path, cfg)
   height, width = scene.train.images.shape[1:3]
   logging.info("scene %s: %d train / %d test views, %dx%d, %d points, "
                "extent %.3f", scene_path, len(scene.train.names),
@@ -231,9 +240,12 @@ def main(argv):
   run_info = {"scene": os.path.abspath(scene_path), "embedded_scene": embedded,
               "downscale": _DOWNSCALE.value, "train_split": _TRAIN_SPLIT.value,
               "preset": _PRESET.value, "argv": sys.argv}
-  metrics = run_lib.train_and_evaluate(
-      cfg, scene, workdir, scorer=scorer, lpips_net=_LPIPS_NET.value,
-      resume=_RESUME.value, run_info=run_info)
+  # Nothing is written before this point; a run that fails before its
+  # first checkpoint removes what it wrote.
+  with cli.output_dir(workdir, keep=train.CHECKPOINT_NAME):
+    metrics = run_lib.train_and_evaluate(
+        cfg, scene, workdir, scorer=scorer, lpips_net=_LPIPS_NET.value,
+        resume=_RESUME.value, run_info=run_info)
   test = metrics["test"]
   logging.info("test PSNR %.3f  SSIM %.4f  LPIPS(%s) %.4f  train %.1f s  "
                "%d Gaussians", test["psnr"], test["ssim"], test["lpips_net"],
@@ -246,4 +258,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  app.run(main)
+  cli.run(main)

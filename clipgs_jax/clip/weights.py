@@ -76,6 +76,69 @@ def _to_float32(x: np.ndarray) -> np.ndarray:
   return x
 
 
+class WeightsError(ValueError):
+  """A weights file that cannot be read: names the file, format and fix."""
+
+
+_FIX = ('pass CLIP ViT-B/32 weights (OpenAI ViT-B-32.pt, a Hugging Face '
+        'model.safetensors or its folder, or a .npz from '
+        'experiments/convert_clip.py)')
+# Bytes read to tell what a file really holds.
+_SNIFF_BYTES = 16
+# A reader's own message is cut to this many characters in ours.
+_REASON_CHARS = 100
+
+
+def sniff(path: pathlib.Path) -> str:
+  """What the file's first bytes say it is, for error messages."""
+  try:
+    size = path.stat().st_size
+    with open(path, 'rb') as f:
+      head = f.read(_SNIFF_BYTES)
+  except OSError as e:
+    return f'unreadable ({e.strerror})'
+  if not head:
+    what = 'an empty file'
+  elif head.startswith(b'PK\x03\x04'):
+    what = 'a zip archive (torch.save or .npz)'
+  elif head[:1] == b'\x80':
+    what = 'a Python pickle (old torch.save)'
+  elif head.startswith(b'\x93NUMPY'):
+    what = 'a .npy array'
+  elif len(head) > 8 and head[8:9] == b'{':
+    what = 'a safetensors file'
+  elif all(32 <= c < 127 or c in b'\t\r\n' for c in head):
+    what = 'text'
+  else:
+    what = 'binary data of no known weights format'
+  return f'{what}, {size} bytes'
+
+
+def _reason(e: BaseException) -> str:
+  """A reader's error, in one short line, without unsafe-loading advice.
+
+  torch's weights_only failures suggest `weights_only=False` and numpy's
+  pickle refusal suggests `allow_pickle=True`: both run code from the file,
+  so neither is repeated.
+  """
+  text = ' '.join(str(e).split())
+  if 'WeightsUnpickler error:' in text:
+    text = text.split('WeightsUnpickler error:', 1)[1]
+    text = text.split('. ')[0].strip()
+  elif 'allow_pickle' in text:
+    text = 'it holds pickled Python objects, which are never loaded'
+  if 'weights_only' in text or 'allow_pickle' in text or 'trust' in text:
+    text = ''
+  return f'{type(e).__name__}: {text[:_REASON_CHARS]}'.rstrip(': ')
+
+
+def _unreadable(path: pathlib.Path, fmt: str,
+                e: BaseException) -> WeightsError:
+  return WeightsError(
+      f'CLIP weights {path} cannot be read as {fmt} (from its extension): '
+      f'{_reason(e)}; the file holds {sniff(path)}; {_FIX}.')
+
+
 def _read_safetensors(path: pathlib.Path) -> dict[str, np.ndarray]:
   with safetensors.safe_open(path, framework='numpy') as f:
     dtypes = {n: f.get_slice(n).get_dtype() for n in f.keys()}
@@ -86,15 +149,31 @@ def _read_safetensors(path: pathlib.Path) -> dict[str, np.ndarray]:
   out = {}
   for name, info in safetensors.deserialize(path.read_bytes()):
     if info['dtype'] not in _SAFETENSORS_DTYPES:
-      raise ValueError(f'{path}: tensor {name} has unsupported dtype '
-                       f'{info["dtype"]}.')
+      raise WeightsError(f'{path}: tensor {name} has unsupported dtype '
+                         f'{info["dtype"]}; {_FIX}.')
     dtype = _SAFETENSORS_DTYPES[info['dtype']]
     out[name] = np.frombuffer(info['data'], dtype).reshape(info['shape'])
   return out
 
 
+def _is_torchscript(path: pathlib.Path) -> bool:
+  if not zipfile.is_zipfile(path):
+    return False
+  with zipfile.ZipFile(path) as z:
+    # TorchScript archives hold their code; torch.save archives do not.
+    return any(n.endswith('/constants.pkl') for n in z.namelist())
+
+
 def _read_torch(path: pathlib.Path) -> dict[str, np.ndarray]:
-  """Reads an OpenAI TorchScript .pt or a torch.save'd state dict."""
+  """Reads a torch.save'd state dict or an OpenAI TorchScript .pt.
+
+  A file is read with torch.load(weights_only=True), which unpickles
+  tensors and plain containers only. TorchScript archives (OpenAI's CLIP
+  release) are refused by weights_only=True, and are read with
+  torch.jit.load instead, whose C++ reader restores tensors and TorchScript
+  code without running Python pickles; only the state dict is used. Unsafe
+  loading (weights_only=False) is never used nor advised.
+  """
   try:
     import torch  # pylint: disable=g-import-not-at-top
   except ImportError as e:
@@ -104,12 +183,11 @@ def _read_torch(path: pathlib.Path) -> dict[str, np.ndarray]:
         f'`python experiments/convert_clip.py --src={path} --dst=clip.npz` '
         'and pass the .npz instead.'
     ) from e
-  is_script = False
-  if zipfile.is_zipfile(path):
-    with zipfile.ZipFile(path) as z:
-      # TorchScript archives hold their code; torch.save archives do not.
-      is_script = any(n.endswith('/constants.pkl') for n in z.namelist())
-  if is_script:
+  with open(path, 'rb') as f:
+    head = f.read(1)
+  if not zipfile.is_zipfile(path) and head != b'\x80':
+    raise ValueError('neither a torch.save zip archive nor a pickle')
+  if _is_torchscript(path):
     with warnings.catch_warnings():
       # OpenAI released CLIP only as TorchScript, which torch now deprecates;
       # there is no other reader for these files.
@@ -119,8 +197,13 @@ def _read_torch(path: pathlib.Path) -> dict[str, np.ndarray]:
       state = torch.jit.load(str(path), map_location='cpu').state_dict()
   else:
     state = torch.load(str(path), map_location='cpu', weights_only=True)
-    if 'state_dict' in state and isinstance(state['state_dict'], Mapping):
+    if isinstance(state, Mapping) and isinstance(state.get('state_dict'),
+                                                 Mapping):
       state = state['state_dict']
+  if not isinstance(state, Mapping) or not all(
+      isinstance(t, torch.Tensor) for t in state.values()):
+    raise WeightsError(f'CLIP weights {path} hold a {type(state).__name__} '
+                       f'that is not a name -> tensor mapping; {_FIX}.')
   out = {}
   for name, tensor in state.items():
     tensor = tensor.detach().cpu()
@@ -128,6 +211,24 @@ def _read_torch(path: pathlib.Path) -> dict[str, np.ndarray]:
       tensor = tensor.float()  # also bf16, which numpy cannot hold
     out[name] = tensor.numpy()
   return out
+
+
+def _read_npz(path: pathlib.Path) -> dict[str, np.ndarray]:
+  if not zipfile.is_zipfile(path):
+    # np.load would try it as a pickle and talk about allow_pickle.
+    raise ValueError('not a zip archive, as every .npz is')
+  with np.load(path, allow_pickle=False) as f:
+    return {name: f[name] for name in f.files}
+
+
+# Reader and format name per file extension.
+_READERS = {
+    '.safetensors': (_read_safetensors, 'safetensors'),
+    '.pt': (_read_torch, 'a PyTorch checkpoint'),
+    '.pth': (_read_torch, 'a PyTorch checkpoint'),
+    '.bin': (_read_torch, 'a PyTorch checkpoint'),
+    '.npz': (_read_npz, 'a numpy .npz'),
+}
 
 
 def read_tensors(path: str | os.PathLike) -> dict[str, np.ndarray]:
@@ -139,25 +240,37 @@ def read_tensors(path: str | os.PathLike) -> dict[str, np.ndarray]:
 
   Returns:
     name -> numpy array, in the file's own naming.
+
+  Raises:
+    FileNotFoundError: the file (or the folder's model.safetensors) is
+      missing.
+    WeightsError: any reader error, re-raised naming the file, the format
+      its extension selects, what its bytes look like, and the fix.
   """
   path = pathlib.Path(path)
   if path.is_dir():
     path = path / 'model.safetensors'
     if not path.exists():
-      raise FileNotFoundError(f'{path.parent} holds no model.safetensors.')
+      raise FileNotFoundError(f'{path.parent} holds no model.safetensors; '
+                              f'{_FIX}.')
   suffix = path.suffix.lower()
-  if suffix == '.safetensors':
-    tensors = _read_safetensors(path)
-  elif suffix in ('.pt', '.pth', '.bin'):
-    tensors = _read_torch(path)
-  elif suffix == '.npz':
-    with np.load(path, allow_pickle=False) as f:
-      tensors = {name: f[name] for name in f.files}
-  else:
-    raise ValueError(
+  if suffix not in _READERS:
+    raise WeightsError(
         f'{path}: unknown CLIP checkpoint type {suffix!r}; expected .pt, '
         '.pth, .bin, .safetensors or .npz.'
     )
+  reader, fmt = _READERS[suffix]
+  if not path.is_file():
+    raise FileNotFoundError(f'CLIP weights {path} do not exist; {_FIX}.')
+  try:
+    tensors = reader(path)
+  except (WeightsError, ImportError):
+    raise
+  except Exception as e:  # pylint: disable=broad-except
+    # safetensors, torch's unpicklers, zipfile and numpy raise many types
+    # (SafetensorError, UnpicklingError, RuntimeError, BadZipFile, ...);
+    # each means the file is not what its extension says.
+    raise _unreadable(path, fmt, e) from e
   return {name: _to_float32(x) for name, x in tensors.items()}
 
 

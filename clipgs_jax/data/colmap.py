@@ -278,6 +278,12 @@ def _intrinsics(cam) -> np.ndarray:
 
 
 def _check_images_exist(image_dir: str, images) -> None:
+  if not os.path.isdir(image_dir) or not os.listdir(image_dir):
+    what = "is empty" if os.path.isdir(image_dir) else "does not exist"
+    raise FileNotFoundError(
+        f"image folder {image_dir} {what} but the COLMAP model lists "
+        f"{len(images)} images (e.g. {images[0].name}); put the photos the "
+        "model was made from there.")
   for image in images:
     path = os.path.join(image_dir, image.name)
     if not os.path.isfile(path):

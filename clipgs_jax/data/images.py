@@ -52,6 +52,12 @@ def read_image(path: str) -> np.ndarray:
   """
   if not os.path.isfile(path):
     raise FileNotFoundError(f"image file not found: {path}")
+  if not os.access(path, os.R_OK):
+    # OpenImageIO would report "could not open", and we would advise
+    # re-saving a file that is fine.
+    raise PermissionError(f"image {path} is not readable (permission "
+                          "denied); make it readable (chmod a+r) or run as "
+                          "its owner.")
   inp = oiio.ImageInput.open(path, _read_config())
   if inp is None:
     raise ValueError(f"cannot read image {path}: "

@@ -21,6 +21,9 @@ TEST_EVERY = 8
 # 3DGS's "cameras_extent": camera-centre radius with a 10% margin.
 EXTENT_MARGIN = 1.1
 MASK_THRESHOLD = 0.5
+# Smallest image side: the SSIM window (losses.SSIM_WINDOW); the test
+# metrics' SSIM needs one full window inside the image.
+MIN_IMAGE_SIDE = 11
 
 
 @dataclasses.dataclass(frozen=True)
@@ -148,6 +151,11 @@ def _load_views(model: colmap.Model, idx, scene_path: str, downscale: int,
                               cache_dir=resize_cache,
                               prescaled_path=prescaled)
     h, w = image.shape[:2]
+    if min(w, h) < MIN_IMAGE_SIDE:
+      raise ValueError(
+          f"{src} gives a {w}x{h} image at downscale {downscale}; views need "
+          f"at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE} pixels (one SSIM "
+          "window); use a smaller --downscale or larger images.")
     if first is None:
       first = (name, w, h)
     elif (w, h) != first[1:]:
