@@ -12,16 +12,29 @@ from clipgs_jax import camera
 from clipgs_jax.data import colmap
 from clipgs_jax.data import images
 
-VERSION = 1
-SEED = 20261121
+# 2: persistent transients (each stays put for a run of views), every
+# training view cluttered; caches of version 1 are rebuilt.
+VERSION = 2
+SEED = 20261122
 WIDTH, HEIGHT = 128, 96
 FOCAL = 110.0                 # pixels: about 60 degrees horizontal field
 NUM_TRAIN, NUM_TEST = 24, 5
-NUM_CLUTTERED = 12            # training views that get transients
-NUM_POINTS_PER_VIEW = 150     # sparse points sampled from each clean view
+NUM_POINTS_PER_VIEW = 200     # sparse points sampled from each view
 POINT_NOISE = 0.01            # scene units, mimics SfM triangulation error
 SUPERSAMPLE = 2               # 2x2 samples per pixel, so edges are fittable
-MIN_TRANSIENT_PIXELS = 30     # resample a transient that is barely visible
+MIN_TRANSIENT_PIXELS = 30     # every view of a run sees its object this much
+# Transient objects, as in RobustNeRF: each stays at one 3D position for a
+# run of consecutive training views (about a quarter of the ring at most),
+# so that vanilla 3DGS can fit it as a multi-view-consistent ghost. A new
+# object enters every RUN_STRIDE views; with runs of RUN_LENGTHS views every
+# training view is cluttered and some see two objects.
+RUN_STRIDE = 3
+RUN_LENGTHS = (3, 6)          # inclusive range of a run's length in views
+# Objects stand between the camera ring (radius 3) and the static objects
+# (within radius ~1.4 of the centre): this range of distances from the
+# centre, so that fitted ghosts occlude static content in nearby views.
+TRANSIENT_RADII = (1.75, 2.15)
+MAX_PLACEMENT_TRIES = 50      # resample an object until all its views see it
 
 _TARGET = np.array([0.0, 0.0, 0.3])
 _UP = np.array([0.0, 0.0, 1.0])
@@ -226,60 +239,105 @@ def _downsample(x, cam, samples):
   return x.mean(axis=(1, 3))
 
 
+def _sphere_part(o, d, centre, radius):
+  """(t [N], normal [N, 3]) of a sphere seen from outside."""
+  t = _ray_sphere(o, d, centre, radius)
+  p = o + np.where(np.isfinite(t), t, 0)[:, None] * d
+  return t, (p - np.asarray(centre)) / radius
+
+
+def _side_part(o, d, xy, radius, z0, z1):
+  """(t [N], normal [N, 3]) of the side of a vertical cylinder."""
+  t = _ray_vertical_cylinder(o, d, xy, radius, z0, z1)
+  p = o + np.where(np.isfinite(t), t, 0)[:, None] * d
+  n = np.stack([p[:, 0] - xy[0], p[:, 1] - xy[1], np.zeros(len(t))], 1)
+  return t, n / radius
+
+
+def _object_parts(o, d, tr):
+  """[(t [N], normal [N, 3], colour [3] or callable of hit points)]."""
+  x, y, z = tr["position"]
+  if tr["kind"] == "person":
+    # A capsule body (shirt over trousers) with a head, standing on the
+    # ground at (x, y).
+    r, top = tr["radius"], tr["height"] - 2.2 * tr["head"]
+    hip = 0.45 * tr["height"]
+    shirt, trousers = np.asarray(tr["color"]), np.asarray(tr["color2"])
+
+    def body(p):
+      return np.where((p[:, 2] < hip)[:, None], trousers, shirt)
+    head = (x, y, tr["height"] - tr["head"])
+    return [_sphere_part(o, d, (x, y, r), r) + (body,),
+            _sphere_part(o, d, (x, y, top), r) + (body,),
+            _side_part(o, d, (x, y), r, r, top) + (body,),
+            _sphere_part(o, d, head, tr["head"]) + (_SKIN,)]
+  if tr["kind"] == "crate":
+    half = np.asarray(tr["half"])
+    t, n = _ray_box(o, d, np.array([x, y, half[2]]), half, tr["angle"])
+    colour = np.asarray(tr["color"])
+
+    def slats(p):                     # horizontal bands: texture to fit
+      band = 0.75 + 0.25 * (np.sin(25 * p[:, 2]) > 0)
+      return colour * band[:, None]
+    return [(t, n, slats)]
+  # A balloon on a string tied to the ground.
+  return [_sphere_part(o, d, (x, y, z), tr["radius"]) + (tr["color"],),
+          _side_part(o, d, (x, y), 0.01, 0.0, z - tr["radius"]) +
+          ((0.95, 0.95, 0.95),)]
+
+
 def _transient_hits(o, d, transients):
   """Nearest transient hit: (t [N], albedo [N, 3], normal [N, 3])."""
   t = np.full(len(o), np.inf)
   col = np.zeros((len(o), 3))
   normal = np.zeros((len(o), 3))
   for tr in transients:
-    parts = []
-    if tr["kind"] == "person":
-      x, y = tr["position"][:2]
-      r, top = tr["radius"], tr["height"] - 2.2 * tr["head"]
-      parts += [(_ray_sphere(o, d, (x, y, r), r), (x, y, r), tr["color"]),
-                (_ray_sphere(o, d, (x, y, top), r), (x, y, top), tr["color"])]
-      side = _ray_vertical_cylinder(o, d, (x, y), r, r, top)
-      parts.append((side, None, tr["color"]))
-      head = (x, y, tr["height"] - tr["head"])
-      parts.append((_ray_sphere(o, d, head, tr["head"]), head, _SKIN))
-    else:
-      x, y, z = tr["position"]
-      parts.append((_ray_sphere(o, d, (x, y, z), tr["radius"]), (x, y, z),
-                    tr["color"]))
-      string = _ray_vertical_cylinder(o, d, (x, y), 0.008, 0.0,
-                                      z - tr["radius"])
-      parts.append((string, None, (0.95, 0.95, 0.95)))
-    for tp, centre, colour in parts:
+    for tp, n, colour in _object_parts(o, d, tr):
       closer = tp < t
       t[closer] = tp[closer]
-      col[closer] = colour
-      p = o[closer] + tp[closer, None] * d[closer]
-      if centre is None:                         # vertical side: radial xy
-        n = p - np.array([tr["position"][0], tr["position"][1], 0.0])
-        n[:, 2] = 0
+      normal[closer] = n[closer]
+      if callable(colour):
+        col[closer] = colour(o[closer] + tp[closer, None] * d[closer])
       else:
-        n = p - np.asarray(centre)
-      normal[closer] = n / np.maximum(np.linalg.norm(n, axis=1,
-                                                     keepdims=True), 1e-12)
+        col[closer] = colour
   return t, col, normal
 
 
-def _random_transient(rng, cam):
-  """A person or a balloon between the camera and the scene centre."""
-  centre = camera.camera_center(cam)
-  fwd = _TARGET[:2] - centre[:2]
-  fwd /= np.linalg.norm(fwd)
-  right = np.array([fwd[1], -fwd[0]])
-  dist = rng.uniform(0.9, 1.8)
-  lateral = rng.uniform(-0.45, 0.45) * dist
-  xy = centre[:2] + dist * fwd + lateral * right
-  color = tuple(_VIVID[rng.integers(len(_VIVID))])
-  if rng.random() < 0.6:
-    return {"kind": "person", "position": [xy[0], xy[1], 0.0],
-            "height": rng.uniform(1.1, 1.5), "radius": rng.uniform(0.11, 0.16),
-            "head": rng.uniform(0.09, 0.12), "color": color}
-  return {"kind": "balloon", "radius": rng.uniform(0.13, 0.2),
-          "position": [xy[0], xy[1], rng.uniform(0.7, 1.4)], "color": color}
+def _random_object(rng, cams):
+  """A person, crate or balloon standing in front of a run of cameras.
+
+  It stands at TRANSIENT_RADII from the scene centre, near the azimuth of
+  the run's middle camera: between those cameras and the static objects.
+  """
+  centres = np.stack([camera.camera_center(c) for c in cams])
+  mid = centres[:, :2].mean(axis=0)
+  az = np.arctan2(mid[1], mid[0]) + rng.uniform(-0.15, 0.15)
+  radius = rng.uniform(*TRANSIENT_RADII)
+  x, y = radius * np.cos(az), radius * np.sin(az)
+  pick = rng.permutation(len(_VIVID))
+  color, color2 = tuple(_VIVID[pick[0]]), tuple(_VIVID[pick[1]])
+  kind = rng.choice(["person", "person", "crate", "balloon"])
+  if kind == "person":
+    return {"kind": "person", "position": [x, y, 0.0],
+            "height": rng.uniform(1.2, 1.6), "radius": rng.uniform(0.16, 0.24),
+            "head": rng.uniform(0.11, 0.14), "color": color,
+            "color2": tuple(0.6 * np.asarray(color2))}
+  if kind == "crate":
+    return {"kind": "crate", "position": [x, y, 0.0],
+            "half": [rng.uniform(0.2, 0.32), rng.uniform(0.2, 0.32),
+                     rng.uniform(0.25, 0.45)],
+            "angle": rng.uniform(0, np.pi / 2), "color": color}
+  return {"kind": "balloon", "radius": rng.uniform(0.22, 0.32),
+          "position": [x, y, rng.uniform(0.8, 1.3)], "color": color}
+
+
+def _schedule(rng):
+  """[(first view, run length)]: a new object every RUN_STRIDE views."""
+  runs = []
+  for first in range(0, NUM_TRAIN, RUN_STRIDE):
+    length = int(rng.integers(RUN_LENGTHS[0], RUN_LENGTHS[1] + 1))
+    runs.append((first, min(length, NUM_TRAIN - first)))
+  return runs
 
 
 def _look_at(eye) -> camera.Camera:
@@ -324,7 +382,11 @@ def _render_static(cam):
 
 
 def _render_cluttered(cam, buffers, transients):
-  """(colour [H, W, 3], mask bool [H, W]) with the transients composited."""
+  """(colour [H, W, 3], mask bool [H, W], per-sample buffers) of a view.
+
+  The transients are composited over the static render; the buffers are
+  those of the cluttered view (what structure from motion would see).
+  """
   o, d = buffers["o"], buffers["d"]
   t, albedo, normal = _transient_hits(o, d, transients)
   front = t < buffers["t"]
@@ -335,11 +397,13 @@ def _render_cluttered(cam, buffers, transients):
   mask = _downsample(front.astype(np.float64)[:, None], cam, SUPERSAMPLE)
   # A pixel is transient if any of its samples sees a transient: every
   # contaminated pixel is marked.
-  return _downsample(col, cam, SUPERSAMPLE), mask[..., 0] > 0
+  cluttered = {"o": o, "d": d, "t": np.where(front, t, buffers["t"]),
+               "col": col}
+  return _downsample(col, cam, SUPERSAMPLE), mask[..., 0] > 0, cluttered
 
 
 def _sample_points(rng, buffers):
-  """Sparse points from one clean view: (xyz [n, 3], rgb uint8 [n, 3])."""
+  """Sparse points from one view: (xyz [n, 3], rgb uint8 [n, 3])."""
   pick = rng.choice(len(buffers["t"]), NUM_POINTS_PER_VIEW, replace=False)
   # Every ray ends on the backdrop at the latest, so t is finite.
   xyz = buffers["o"][pick] + buffers["t"][pick, None] * buffers["d"][pick]
@@ -371,9 +435,13 @@ A procedural scene generated by clipgs_jax (clipgs_jax/data/default_scene.py,
 seed {seed}): a textured ground, four primitives and a sky backdrop, ray cast
 with 2x2 supersampling. RobustNeRF layout: images/0cleanNNN.png (clean twins
 of the training views), images/1extraNNN.png (clean test views),
-images/2clutterNNN.png (training views; some contain transient people and
-balloons), masks/2clutterNNN.png (white = transient pixel), sparse/0 (COLMAP
-PINHOLE model; points sampled from the static surfaces), transients.json.
+images/2clutterNNN.png (training views; every one contains transient people,
+crates or balloons, each of which stays at one place for a run of 3-6
+consecutive views, as RobustNeRF's distractors do), masks/2clutterNNN.png
+(white = transient pixel), sparse/0 (COLMAP PINHOLE model; points sampled
+from the surfaces the training views see, transients included, as structure
+from motion triangulates objects that stay put), transients.json (the objects, their runs of views,
+and each view's objects).
 
 License: CC0 1.0 (public domain dedication). Generated data, no third-party
 content.
@@ -393,6 +461,29 @@ def _describe(transient) -> dict:
   return out
 
 
+def _object_pixels(cam, buffers, tr) -> int:
+  """Pixels of `cam` in which the object alone is in front of the scene."""
+  return int(_render_cluttered(cam, buffers, [tr])[1].sum())
+
+
+def _place_objects(rng, train, buffers):
+  """[(object, views)]: one object per run, seen by every view of it."""
+  placed = []
+  for first, length in _schedule(rng):
+    views = list(range(first, first + length))
+    for _ in range(MAX_PLACEMENT_TRIES):
+      tr = _random_object(rng, [train[k] for k in views])
+      if all(_object_pixels(train[k], buffers[k], tr) >= MIN_TRANSIENT_PIXELS
+             for k in views):
+        break
+    else:
+      raise RuntimeError(f"default scene: no placement of the object for "
+                         f"views {views} is visible in all of them; "
+                         f"TRANSIENT_RADII or RUN_LENGTHS are inconsistent")
+    placed.append((tr, views))
+  return placed
+
+
 def generate(folder: str) -> None:
   """Writes the default scene into `folder` (which must not exist)."""
   rng = np.random.default_rng(SEED)
@@ -400,22 +491,17 @@ def generate(folder: str) -> None:
   img_dir = os.path.join(folder, "images")
   named = {}
   points, colors, views = [], [], []
-  cluttered = set(rng.permutation(NUM_TRAIN)[:NUM_CLUTTERED].tolist())
-  for k, cam in enumerate(train):
-    clean, buffers = _render_static(cam)
-    xyz, rgb = _sample_points(rng, buffers)
+  renders = [_render_static(cam) for cam in train]
+  placed = _place_objects(rng, train, [b for _, b in renders])
+  for k, (cam, (clean, buffers)) in enumerate(zip(train, renders)):
+    here = [(i, tr) for i, (tr, run) in enumerate(placed) if k in run]
+    image, mask, seen = _render_cluttered(cam, buffers,
+                                          [tr for _, tr in here])
+    # Structure from motion triangulates what the training views show: an
+    # object that stays put for several views gets points too.
+    xyz, rgb = _sample_points(rng, seen)
     points.append(xyz)
     colors.append(rgb)
-    transients, image, mask = [], clean, np.zeros(clean.shape[:2], bool)
-    if k in cluttered:
-      for _ in range(1 + int(rng.random() < 0.5)):
-        for _ in range(20):             # resample until clearly visible
-          tr = _random_transient(rng, cam)
-          img_k, mask_k = _render_cluttered(cam, buffers, transients + [tr])
-          if (mask_k & ~mask).sum() >= MIN_TRANSIENT_PIXELS:
-            transients.append(tr)
-            image, mask = img_k, mask_k
-            break
     names = (f"0clean{k:03d}.png", f"2clutter{k:03d}.png")
     images.write_png(os.path.join(img_dir, names[0]), clean)
     images.write_png(os.path.join(img_dir, names[1]), image)
@@ -424,7 +510,7 @@ def generate(folder: str) -> None:
     views.append({
         "name": names[1], "clean": names[0], "mask": f"masks/{names[1]}",
         "transient_pixels": int(mask.sum()),
-        "transients": [_describe(tr) for tr in transients]})
+        "transients": [{"id": i, **_describe(tr)} for i, tr in here]})
   for k, cam in enumerate(test):
     name = f"1extra{k:03d}.png"
     images.write_png(os.path.join(img_dir, name), _render_static(cam)[0])
@@ -434,9 +520,12 @@ def generate(folder: str) -> None:
   files = sorted([f"images/{n}" for n in named] + [v["mask"] for v in views] +
                  [f"sparse/0/{f}" for f in os.listdir(
                      os.path.join(folder, "sparse", "0"))] + ["README.txt"])
+  objects = [{"id": i, "views": [views[k]["name"] for k in run],
+              **_describe(tr)} for i, (tr, run) in enumerate(placed)]
   manifest = {"generator": "clipgs_jax.data.default_scene",
               "version": VERSION, "seed": SEED, "width": WIDTH,
-              "height": HEIGHT, "views": views, "files": files}
+              "height": HEIGHT, "views": views, "objects": objects,
+              "files": files}
   with open(os.path.join(folder, "README.txt"), "w") as f:
     f.write(_README.format(version=VERSION, seed=SEED))
   with open(os.path.join(folder, "transients.json"), "w") as f:
