@@ -148,6 +148,22 @@ def test_loads_with_robustnerf_split(loaded, manifest):
   np.testing.assert_allclose(loaded.extent, 1.1 * 3.0, rtol=0.05)
 
 
+def test_transient_points_are_labelled(loaded, manifest):
+  # Structure from motion triangulates the objects that stay put; the
+  # manifest names those rows, so benchmarks can tell them apart.
+  assert manifest["num_points"] == len(loaded.points)
+  rows = np.asarray(manifest["transient_points"])
+  assert 0.05 < len(rows) / len(loaded.points) < 0.4
+  radius = np.hypot(loaded.points[rows, 0], loaded.points[rows, 1])
+  lo, hi = default_scene.TRANSIENT_RADII
+  slack = 0.6                       # object size: half a crate or a balloon
+  assert (radius > lo - slack).all() and (radius < hi + slack).all()
+  static = np.setdiff1d(np.arange(len(loaded.points)), rows)
+  # The static objects stand inside radius ~1.4 and get many points.
+  near = np.hypot(loaded.points[static, 0], loaded.points[static, 1]) < 1.4
+  assert near.sum() > 0.2 * len(static)
+
+
 def test_clean_split(scene_dir, tmp_path):
   s = scene.load_scene(scene_dir, train_split="clean",
                        cache_dir=str(tmp_path))

@@ -154,18 +154,22 @@ def _render_cluttered(cam, buffers, transients):
   # A pixel is transient if any of its samples sees a transient: every
   # contaminated pixel is marked.
   cluttered = {"o": o, "d": d, "t": np.where(front, t, buffers["t"]),
-               "col": col}
+               "col": col, "transient": front}
   return _downsample(col, cam, SUPERSAMPLE), mask[..., 0] > 0, cluttered
 
 
 def _sample_points(rng, buffers):
-  """Sparse points from one view: (xyz [n, 3], rgb uint8 [n, 3])."""
+  """Sparse points from one view's samples.
+
+  Returns:
+    (xyz float64 [n, 3], rgb uint8 [n, 3], on_transient bool [n]).
+  """
   pick = rng.choice(len(buffers["t"]), NUM_POINTS_PER_VIEW, replace=False)
   # Every ray ends on the backdrop at the latest, so t is finite.
   xyz = buffers["o"][pick] + buffers["t"][pick, None] * buffers["d"][pick]
   xyz += rng.normal(0, POINT_NOISE, xyz.shape)
   rgb = np.round(np.clip(buffers["col"][pick], 0, 1) * 255)
-  return xyz, rgb.astype(np.uint8)
+  return xyz, rgb.astype(np.uint8), buffers["transient"][pick]
 
 
 def _write_model(folder, named_cams, points, colors):
@@ -246,7 +250,7 @@ def generate(folder: str) -> None:
   train, test = _cameras()
   img_dir = os.path.join(folder, "images")
   named = {}
-  points, colors, views = [], [], []
+  points, colors, labels, views = [], [], [], []
   renders = [_render_static(cam) for cam in train]
   placed = _place_objects(rng, train, [b for _, b in renders])
   for k, (cam, (clean, buffers)) in enumerate(zip(train, renders)):
@@ -255,9 +259,10 @@ def generate(folder: str) -> None:
                                           [tr for _, tr in here])
     # Structure from motion triangulates what the training views show: an
     # object that stays put for several views gets points too.
-    xyz, rgb = _sample_points(rng, seen)
+    xyz, rgb, on_transient = _sample_points(rng, seen)
     points.append(xyz)
     colors.append(rgb)
+    labels.append(on_transient)
     names = (f"0clean{k:03d}.png", f"2clutter{k:03d}.png")
     images.write_png(os.path.join(img_dir, names[0]), clean)
     images.write_png(os.path.join(img_dir, names[1]), image)
@@ -281,6 +286,11 @@ def generate(folder: str) -> None:
   manifest = {"generator": "clipgs_jax.data.default_scene",
               "version": VERSION, "seed": SEED, "width": WIDTH,
               "height": HEIGHT, "views": views, "objects": objects,
+              "num_points": sum(len(p) for p in points),
+              # Rows of the sparse model (in point3D id order, as
+              # scene.load_scene returns them) that lie on a transient.
+              "transient_points": np.flatnonzero(
+                  np.concatenate(labels)).tolist(),
               "files": files}
   with open(os.path.join(folder, "README.txt"), "w") as f:
     f.write(_README.format(version=VERSION, seed=SEED))
