@@ -14,7 +14,8 @@ from clipgs_jax.data import images
 from clipgs_jax.data import raycast
 
 # 2: persistent transients (each stays put for a run of views), every
-# training view cluttered; caches of version 1 are rebuilt.
+# training view cluttered, SfM points on them. A cache written by another
+# version lives in another folder and is never read.
 VERSION = 2
 SEED = 20261122
 WIDTH, HEIGHT = 128, 96
@@ -25,7 +26,7 @@ POINT_NOISE = 0.01            # scene units, mimics SfM triangulation error
 SUPERSAMPLE = 2               # 2x2 samples per pixel, so edges are fittable
 MIN_TRANSIENT_PIXELS = 30     # every view of a run sees its object this much
 # Transient objects, as in RobustNeRF: each stays at one 3D position for a
-# run of consecutive training views (about a quarter of the ring at most),
+# run of consecutive training views (at most 75 degrees of the ring),
 # so that vanilla 3DGS can fit it as a multi-view-consistent ghost. A new
 # object enters every RUN_STRIDE views; with runs of RUN_LENGTHS views every
 # training view is cluttered and some see two objects.
@@ -35,6 +36,7 @@ RUN_LENGTHS = (3, 6)          # inclusive range of a run's length in views
 # (within radius ~1.4 of the centre): this range of distances from the
 # centre, so that fitted ghosts occlude static content in nearby views.
 TRANSIENT_RADII = (1.75, 2.15)
+TRANSIENT_AZIMUTH_JITTER = 0.15  # radians around the run's middle camera
 MAX_PLACEMENT_TRIES = 50      # resample an object until all its views see it
 
 _TARGET = np.array([0.0, 0.0, 0.3])
@@ -72,7 +74,8 @@ def _random_object(rng, cams):
   """
   centres = np.stack([camera.camera_center(c) for c in cams])
   mid = centres[:, :2].mean(axis=0)
-  az = np.arctan2(mid[1], mid[0]) + rng.uniform(-0.15, 0.15)
+  az = np.arctan2(mid[1], mid[0]) + rng.uniform(-TRANSIENT_AZIMUTH_JITTER,
+                                                TRANSIENT_AZIMUTH_JITTER)
   radius = rng.uniform(*TRANSIENT_RADII)
   x, y = radius * np.cos(az), radius * np.sin(az)
   pick = rng.permutation(len(_VIVID))

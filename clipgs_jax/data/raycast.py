@@ -12,9 +12,9 @@ _EPS = 1e-4                   # offset of shadow rays, avoids self-hits
 _MISS, _GROUND, _BACKDROP = -1, 0, 1
 _TRANSIENT = 100
 
-# Static primitives. Spheres: (centre, radius, _albedo); box: (centre,
-# half sizes, rotation about z, _albedo); cylinder: (base xy, radius, height,
-# _albedo), standing on the ground.
+# Static primitives. Spheres: (centre, radius, albedo); box: (centre,
+# half sizes, rotation about z, albedo); cylinder: (base xy, radius, height,
+# albedo), standing on the ground.
 _SPHERES = [((0.6, -0.4, 0.45), 0.45, (0.85, 0.2, 0.15)),
             ((0.9, 0.75, 0.2), 0.2, (0.95, 0.8, 0.15))]
 _BOX = ((-0.7, -0.45, 0.35), (0.35, 0.3, 0.35), np.deg2rad(30),
@@ -81,7 +81,7 @@ def _static_hits(o, d, occluders_only=False):
   """Nearest static hit: (t [N], id [N], normal [N, 3]).
 
   With `occluders_only`, only the primitives that cast shadows are tested
-  (not the ground or the _backdrop), for shadow rays.
+  (not the ground or the backdrop), for shadow rays.
   """
   n = len(o)
   t = np.full(n, np.inf)
@@ -115,7 +115,7 @@ def _static_hits(o, d, occluders_only=False):
   take(_ray_disc_top(o, d, xy, radius, height), 3 + len(_SPHERES),
        np.array([0.0, 0.0, 1.0]))
   if not occluders_only:
-    # The _backdrop is seen from inside, so its far root is the hit.
+    # The backdrop is seen from inside, so its far root is the hit.
     take(_ray_sphere(o, d, (0, 0, 0), _BACKDROP_RADIUS), _BACKDROP,
          np.array([0.0, 0.0, 0.0]))
   return t, ids, normal
@@ -139,10 +139,10 @@ def _albedo(ids, p):
   drift = 0.12 * np.stack([np.sin(0.9 * x), np.cos(0.7 * y),
                            np.sin(0.5 * (x + y))], 1)
   col[g] = a * chk + b * (1 - chk) + drift
-  for k, (centre, _, _albedo) in enumerate(_SPHERES):
+  for k, (centre, _, albedo) in enumerate(_SPHERES):
     m = ids == 2 + k
     band = 0.8 + 0.2 * np.cos(14 * (p[m, 2] - centre[2]))
-    col[m] = np.asarray(_albedo) * band[:, None]
+    col[m] = np.asarray(albedo) * band[:, None]
   m = ids == 2 + len(_SPHERES)
   col[m] = np.asarray(_BOX[3]) * (0.85 + 0.15 * np.sin(9 * p[m, 2]))[:, None]
   m = ids == 3 + len(_SPHERES)
@@ -152,7 +152,7 @@ def _albedo(ids, p):
 
 
 def _backdrop(d):
-  """float [N, 3] unlit _backdrop colour by direction: sky gradient + bands."""
+  """float [N, 3] unlit backdrop colour by direction: sky gradient + bands."""
   elev = d[:, 2]
   az = np.arctan2(d[:, 1], d[:, 0])
   horizon, zenith = np.array([0.92, 0.88, 0.8]), np.array([0.35, 0.55, 0.9])
@@ -167,14 +167,14 @@ def _backdrop(d):
   return np.where(elev[:, None] >= 0, sky, below)
 
 
-def _shade(o, d, t, ids, normal, _albedo):
-  """float [N, 3] Lambertian colour; _backdrop pixels are unlit."""
+def _shade(o, d, t, ids, normal, albedo):
+  """float [N, 3] Lambertian colour; backdrop pixels are unlit."""
   p = o + np.where(np.isfinite(t), t, 0)[:, None] * d
   diffuse = np.clip(normal @ _LIGHT, 0, None)
   # Shadow rays only where they can change the colour.
   test = (diffuse > 0) & (ids != _BACKDROP)
   diffuse[test] *= ~_shadowed(p[test] + _EPS * 10 * normal[test])
-  col = _albedo * (_AMBIENT + (1 - _AMBIENT) * diffuse)[:, None]
+  col = albedo * (_AMBIENT + (1 - _AMBIENT) * diffuse)[:, None]
   sky = ids == _BACKDROP
   col[sky] = _backdrop(d[sky])
   return col
@@ -228,7 +228,7 @@ def _object_parts(o, d, tr):
 
 
 def _transient_hits(o, d, transients):
-  """Nearest transient hit: (t [N], _albedo [N, 3], normal [N, 3])."""
+  """Nearest transient hit: (t [N], albedo [N, 3], normal [N, 3])."""
   t = np.full(len(o), np.inf)
   col = np.zeros((len(o), 3))
   normal = np.zeros((len(o), 3))
