@@ -11,198 +11,38 @@ import pycolmap
 from clipgs_jax import camera
 from clipgs_jax.data import colmap
 from clipgs_jax.data import images
+from clipgs_jax.data import raycast
 
-VERSION = 1
-SEED = 20261121
+# 2: persistent transients (each stays put for a run of views), every
+# training view cluttered, SfM points on them. A cache written by another
+# version lives in another folder and is never read.
+VERSION = 2
+SEED = 20261122
 WIDTH, HEIGHT = 128, 96
 FOCAL = 110.0                 # pixels: about 60 degrees horizontal field
 NUM_TRAIN, NUM_TEST = 24, 5
-NUM_CLUTTERED = 12            # training views that get transients
-NUM_POINTS_PER_VIEW = 150     # sparse points sampled from each clean view
+NUM_POINTS_PER_VIEW = 200     # sparse points sampled from each view
 POINT_NOISE = 0.01            # scene units, mimics SfM triangulation error
 SUPERSAMPLE = 2               # 2x2 samples per pixel, so edges are fittable
-MIN_TRANSIENT_PIXELS = 30     # resample a transient that is barely visible
+MIN_TRANSIENT_PIXELS = 30     # every view of a run sees its object this much
+# Transient objects, as in RobustNeRF: each stays at one 3D position for a
+# run of consecutive training views (at most 75 degrees of the ring),
+# so that vanilla 3DGS can fit it as a multi-view-consistent ghost. A new
+# object enters every RUN_STRIDE views; with runs of RUN_LENGTHS views every
+# training view is cluttered and some see two objects.
+RUN_STRIDE = 3
+RUN_LENGTHS = (3, 6)          # inclusive range of a run's length in views
+# Objects stand between the camera ring (radius 3) and the static objects
+# (within radius ~1.4 of the centre): this range of distances from the
+# centre, so that fitted ghosts occlude static content in nearby views.
+TRANSIENT_RADII = (1.75, 2.15)
+TRANSIENT_AZIMUTH_JITTER = 0.15  # radians around the run's middle camera
+MAX_PLACEMENT_TRIES = 50      # resample an object until all its views see it
 
 _TARGET = np.array([0.0, 0.0, 0.3])
 _UP = np.array([0.0, 0.0, 1.0])
-_LIGHT = np.array([0.5, -0.3, 1.0]) / np.linalg.norm([0.5, -0.3, 1.0])
-_AMBIENT = 0.35
-_GROUND_HALF = 3.5            # the ground is the square |x|, |y| <= this
-_BACKDROP_RADIUS = 7.0
-_EPS = 1e-4                   # offset of shadow rays, avoids self-hits
-
-# Object ids in the hit buffers; transients are >= _TRANSIENT.
-_MISS, _GROUND, _BACKDROP = -1, 0, 1
-_TRANSIENT = 100
-
-# Static primitives. Spheres: (centre, radius, albedo); box: (centre,
-# half sizes, rotation about z, albedo); cylinder: (base xy, radius, height,
-# albedo), standing on the ground.
-_SPHERES = [((0.6, -0.4, 0.45), 0.45, (0.85, 0.2, 0.15)),
-            ((0.9, 0.75, 0.2), 0.2, (0.95, 0.8, 0.15))]
-_BOX = ((-0.7, -0.45, 0.35), (0.35, 0.3, 0.35), np.deg2rad(30),
-        (0.2, 0.35, 0.85))
-_CYLINDER = ((-0.25, 0.8), 0.25, 0.9, (0.2, 0.7, 0.3))
-
 _VIVID = [(1.0, 0.1, 0.8), (1.0, 0.5, 0.0), (0.0, 0.85, 1.0),
           (0.55, 1.0, 0.0), (1.0, 0.1, 0.1), (0.6, 0.2, 1.0)]
-_SKIN = (0.95, 0.75, 0.6)
-
-
-def _ray_sphere(o, d, centre, radius):
-  """float [N] hit distance (inf on miss), nearest positive root."""
-  oc = o - np.asarray(centre)
-  b = np.einsum("ni,ni->n", oc, d)
-  c = np.einsum("ni,ni->n", oc, oc) - radius ** 2
-  disc = b * b - c
-  root = np.sqrt(np.maximum(disc, 0.0))
-  t1, t2 = -b - root, -b + root
-  t = np.where(t1 > _EPS, t1, np.where(t2 > _EPS, t2, np.inf))
-  return np.where(disc >= 0, t, np.inf)
-
-
-def _ray_vertical_cylinder(o, d, xy, radius, z0, z1):
-  """float [N] hit distance with the side of a vertical cylinder."""
-  ox, oy = o[:, 0] - xy[0], o[:, 1] - xy[1]
-  a = d[:, 0] ** 2 + d[:, 1] ** 2
-  b = 2 * (ox * d[:, 0] + oy * d[:, 1])
-  c = ox ** 2 + oy ** 2 - radius ** 2
-  disc = b * b - 4 * a * c
-  safe_a = np.where(a > 1e-12, a, 1.0)
-  t = (-b - np.sqrt(np.maximum(disc, 0.0))) / (2 * safe_a)
-  z = o[:, 2] + t * d[:, 2]
-  ok = (disc >= 0) & (a > 1e-12) & (t > _EPS) & (z >= z0) & (z <= z1)
-  return np.where(ok, t, np.inf)
-
-
-def _ray_disc_top(o, d, xy, radius, z):
-  """float [N] hit distance with a horizontal disc (cylinder cap)."""
-  safe = np.where(np.abs(d[:, 2]) > 1e-12, d[:, 2], 1.0)
-  t = (z - o[:, 2]) / safe
-  p = o + t[:, None] * d
-  ok = ((np.abs(d[:, 2]) > 1e-12) & (t > _EPS) &
-        ((p[:, 0] - xy[0]) ** 2 + (p[:, 1] - xy[1]) ** 2 <= radius ** 2))
-  return np.where(ok, t, np.inf)
-
-
-def _ray_box(o, d, centre, half, angle):
-  """(t [N], normal [N, 3]) for a box rotated by `angle` about z."""
-  c, s = np.cos(angle), np.sin(angle)
-  rot = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])     # box to world
-  ol, dl = (o - centre) @ rot, d @ rot                    # world to box
-  safe = np.where(np.abs(dl) > 1e-12, dl, 1e-12)
-  ta, tb = (-np.asarray(half) - ol) / safe, (np.asarray(half) - ol) / safe
-  tmin, tmax = np.minimum(ta, tb), np.maximum(ta, tb)
-  # Column-wise reductions: much faster than .max(axis=1) on [N, 3].
-  near = np.maximum(np.maximum(tmin[:, 0], tmin[:, 1]), tmin[:, 2])
-  far = np.minimum(np.minimum(tmax[:, 0], tmax[:, 1]), tmax[:, 2])
-  hit = (near <= far) & (near > _EPS)
-  # The entry face is the slab whose entry distance is `near`.
-  normal = np.where(tmin == near[:, None], -np.sign(dl), 0.0)
-  return np.where(hit, near, np.inf), normal @ rot.T
-
-
-def _static_hits(o, d, occluders_only=False):
-  """Nearest static hit: (t [N], id [N], normal [N, 3]).
-
-  With `occluders_only`, only the primitives that cast shadows are tested
-  (not the ground or the backdrop), for shadow rays.
-  """
-  n = len(o)
-  t = np.full(n, np.inf)
-  ids = np.full(n, _MISS)
-  normal = np.zeros((n, 3))
-
-  def take(ti, oid, ni):
-    closer = ti < t
-    t[closer], ids[closer] = ti[closer], oid
-    normal[closer] = ni[closer] if ni.ndim == 2 else ni
-
-  def point(ti):
-    return o + np.where(np.isfinite(ti), ti, 0)[:, None] * d
-
-  if not occluders_only:
-    safe = np.where(d[:, 2] < -1e-12, d[:, 2], -1.0)
-    tg = np.where(d[:, 2] < -1e-12, -o[:, 2] / safe, np.inf)
-    inside = (np.abs(point(tg)[:, :2]) <= _GROUND_HALF).all(axis=1)
-    take(np.where(inside & (tg > _EPS), tg, np.inf), _GROUND,
-         np.array([0.0, 0.0, 1.0]))
-  for k, (centre, radius, _) in enumerate(_SPHERES):
-    ts = _ray_sphere(o, d, centre, radius)
-    take(ts, 2 + k, (point(ts) - np.asarray(centre)) / radius)
-  tb, nb = _ray_box(o, d, np.asarray(_BOX[0]), _BOX[1], _BOX[2])
-  take(tb, 2 + len(_SPHERES), nb)
-  xy, radius, height, _ = _CYLINDER
-  tc = _ray_vertical_cylinder(o, d, xy, radius, 0.0, height)
-  p = point(tc)
-  side = np.stack([p[:, 0] - xy[0], p[:, 1] - xy[1], np.zeros(n)], 1) / radius
-  take(tc, 3 + len(_SPHERES), side)
-  take(_ray_disc_top(o, d, xy, radius, height), 3 + len(_SPHERES),
-       np.array([0.0, 0.0, 1.0]))
-  if not occluders_only:
-    # The backdrop is seen from inside, so its far root is the hit.
-    take(_ray_sphere(o, d, (0, 0, 0), _BACKDROP_RADIUS), _BACKDROP,
-         np.array([0.0, 0.0, 0.0]))
-  return t, ids, normal
-
-
-def _shadowed(p):
-  """bool [N], True where the light is blocked by a static primitive."""
-  d = np.ascontiguousarray(np.broadcast_to(_LIGHT, p.shape))
-  return np.isfinite(_static_hits(p, d, occluders_only=True)[0])
-
-
-def _albedo(ids, p):
-  """float [N, 3] surface colour of static objects (textured)."""
-  col = np.zeros(p.shape)
-  g = ids == _GROUND
-  x, y = p[g, 0], p[g, 1]
-  # Soft checker (sin product through tanh) with a slow colour drift.
-  chk = (0.5 + 0.5 * np.tanh(3 * np.sin(2 * np.pi * x) *
-                             np.sin(2 * np.pi * y)))[:, None]
-  a, b = np.array([0.85, 0.8, 0.7]), np.array([0.45, 0.4, 0.38])
-  drift = 0.12 * np.stack([np.sin(0.9 * x), np.cos(0.7 * y),
-                           np.sin(0.5 * (x + y))], 1)
-  col[g] = a * chk + b * (1 - chk) + drift
-  for k, (centre, _, albedo) in enumerate(_SPHERES):
-    m = ids == 2 + k
-    band = 0.8 + 0.2 * np.cos(14 * (p[m, 2] - centre[2]))
-    col[m] = np.asarray(albedo) * band[:, None]
-  m = ids == 2 + len(_SPHERES)
-  col[m] = np.asarray(_BOX[3]) * (0.85 + 0.15 * np.sin(9 * p[m, 2]))[:, None]
-  m = ids == 3 + len(_SPHERES)
-  ang = np.arctan2(p[m, 1] - _CYLINDER[0][1], p[m, 0] - _CYLINDER[0][0])
-  col[m] = np.asarray(_CYLINDER[3]) * (0.8 + 0.2 * np.cos(6 * ang))[:, None]
-  return col
-
-
-def _backdrop(d):
-  """float [N, 3] unlit backdrop colour by direction: sky gradient + bands."""
-  elev = d[:, 2]
-  az = np.arctan2(d[:, 1], d[:, 0])
-  horizon, zenith = np.array([0.92, 0.88, 0.8]), np.array([0.35, 0.55, 0.9])
-  w = np.clip(elev, 0, 1)[:, None] ** 0.6
-  sky = horizon * (1 - w) + zenith * w
-  sky += 0.08 * np.stack([np.sin(3 * az), np.sin(3 * az + 2), np.sin(5 * az)],
-                         1) * (1 - w)
-  # Below the horizon, a wall with soft vertical stripes gives the
-  # background some texture to fit.
-  below = (np.array([0.3, 0.28, 0.27]) + 0.05 * np.sin(4 * az)[:, None] +
-           0.06 * np.sin(40 * az)[:, None])
-  return np.where(elev[:, None] >= 0, sky, below)
-
-
-def _shade(o, d, t, ids, normal, albedo):
-  """float [N, 3] Lambertian colour; backdrop pixels are unlit."""
-  p = o + np.where(np.isfinite(t), t, 0)[:, None] * d
-  diffuse = np.clip(normal @ _LIGHT, 0, None)
-  # Shadow rays only where they can change the colour.
-  test = (diffuse > 0) & (ids != _BACKDROP)
-  diffuse[test] *= ~_shadowed(p[test] + _EPS * 10 * normal[test])
-  col = albedo * (_AMBIENT + (1 - _AMBIENT) * diffuse)[:, None]
-  sky = ids == _BACKDROP
-  col[sky] = _backdrop(d[sky])
-  return col
 
 
 def _rays(cam: camera.Camera, samples: int):
@@ -226,60 +66,42 @@ def _downsample(x, cam, samples):
   return x.mean(axis=(1, 3))
 
 
-def _transient_hits(o, d, transients):
-  """Nearest transient hit: (t [N], albedo [N, 3], normal [N, 3])."""
-  t = np.full(len(o), np.inf)
-  col = np.zeros((len(o), 3))
-  normal = np.zeros((len(o), 3))
-  for tr in transients:
-    parts = []
-    if tr["kind"] == "person":
-      x, y = tr["position"][:2]
-      r, top = tr["radius"], tr["height"] - 2.2 * tr["head"]
-      parts += [(_ray_sphere(o, d, (x, y, r), r), (x, y, r), tr["color"]),
-                (_ray_sphere(o, d, (x, y, top), r), (x, y, top), tr["color"])]
-      side = _ray_vertical_cylinder(o, d, (x, y), r, r, top)
-      parts.append((side, None, tr["color"]))
-      head = (x, y, tr["height"] - tr["head"])
-      parts.append((_ray_sphere(o, d, head, tr["head"]), head, _SKIN))
-    else:
-      x, y, z = tr["position"]
-      parts.append((_ray_sphere(o, d, (x, y, z), tr["radius"]), (x, y, z),
-                    tr["color"]))
-      string = _ray_vertical_cylinder(o, d, (x, y), 0.008, 0.0,
-                                      z - tr["radius"])
-      parts.append((string, None, (0.95, 0.95, 0.95)))
-    for tp, centre, colour in parts:
-      closer = tp < t
-      t[closer] = tp[closer]
-      col[closer] = colour
-      p = o[closer] + tp[closer, None] * d[closer]
-      if centre is None:                         # vertical side: radial xy
-        n = p - np.array([tr["position"][0], tr["position"][1], 0.0])
-        n[:, 2] = 0
-      else:
-        n = p - np.asarray(centre)
-      normal[closer] = n / np.maximum(np.linalg.norm(n, axis=1,
-                                                     keepdims=True), 1e-12)
-  return t, col, normal
+def _random_object(rng, cams):
+  """A person, crate or balloon standing in front of a run of cameras.
+
+  It stands at TRANSIENT_RADII from the scene centre, near the azimuth of
+  the run's middle camera: between those cameras and the static objects.
+  """
+  centres = np.stack([camera.camera_center(c) for c in cams])
+  mid = centres[:, :2].mean(axis=0)
+  az = np.arctan2(mid[1], mid[0]) + rng.uniform(-TRANSIENT_AZIMUTH_JITTER,
+                                                TRANSIENT_AZIMUTH_JITTER)
+  radius = rng.uniform(*TRANSIENT_RADII)
+  x, y = radius * np.cos(az), radius * np.sin(az)
+  pick = rng.permutation(len(_VIVID))
+  color, color2 = tuple(_VIVID[pick[0]]), tuple(_VIVID[pick[1]])
+  kind = rng.choice(["person", "person", "crate", "balloon"])
+  if kind == "person":
+    return {"kind": "person", "position": [x, y, 0.0],
+            "height": rng.uniform(1.2, 1.6), "radius": rng.uniform(0.16, 0.24),
+            "head": rng.uniform(0.11, 0.14), "color": color,
+            "color2": tuple(0.6 * np.asarray(color2))}
+  if kind == "crate":
+    return {"kind": "crate", "position": [x, y, 0.0],
+            "half": [rng.uniform(0.2, 0.32), rng.uniform(0.2, 0.32),
+                     rng.uniform(0.25, 0.45)],
+            "angle": rng.uniform(0, np.pi / 2), "color": color}
+  return {"kind": "balloon", "radius": rng.uniform(0.22, 0.32),
+          "position": [x, y, rng.uniform(0.8, 1.3)], "color": color}
 
 
-def _random_transient(rng, cam):
-  """A person or a balloon between the camera and the scene centre."""
-  centre = camera.camera_center(cam)
-  fwd = _TARGET[:2] - centre[:2]
-  fwd /= np.linalg.norm(fwd)
-  right = np.array([fwd[1], -fwd[0]])
-  dist = rng.uniform(0.9, 1.8)
-  lateral = rng.uniform(-0.45, 0.45) * dist
-  xy = centre[:2] + dist * fwd + lateral * right
-  color = tuple(_VIVID[rng.integers(len(_VIVID))])
-  if rng.random() < 0.6:
-    return {"kind": "person", "position": [xy[0], xy[1], 0.0],
-            "height": rng.uniform(1.1, 1.5), "radius": rng.uniform(0.11, 0.16),
-            "head": rng.uniform(0.09, 0.12), "color": color}
-  return {"kind": "balloon", "radius": rng.uniform(0.13, 0.2),
-          "position": [xy[0], xy[1], rng.uniform(0.7, 1.4)], "color": color}
+def _schedule(rng):
+  """[(first view, run length)]: a new object every RUN_STRIDE views."""
+  runs = []
+  for first in range(0, NUM_TRAIN, RUN_STRIDE):
+    length = int(rng.integers(RUN_LENGTHS[0], RUN_LENGTHS[1] + 1))
+    runs.append((first, min(length, NUM_TRAIN - first)))
+  return runs
 
 
 def _look_at(eye) -> camera.Camera:
@@ -316,36 +138,41 @@ def _cameras():
 def _render_static(cam):
   """Static render: (colour [H, W, 3], per-sample buffers for compositing)."""
   o, d = _rays(cam, SUPERSAMPLE)
-  t, ids, normal = _static_hits(o, d)
-  p = o + np.where(np.isfinite(t), t, 0)[:, None] * d
-  col = _shade(o, d, t, ids, normal, _albedo(ids, p))
+  t, col = raycast.static(o, d)
   return (_downsample(col, cam, SUPERSAMPLE),
           {"o": o, "d": d, "t": t, "col": col})
 
 
 def _render_cluttered(cam, buffers, transients):
-  """(colour [H, W, 3], mask bool [H, W]) with the transients composited."""
+  """(colour [H, W, 3], mask bool [H, W], per-sample buffers) of a view.
+
+  The transients are composited over the static render; the buffers are
+  those of the cluttered view (what structure from motion would see).
+  """
   o, d = buffers["o"], buffers["d"]
-  t, albedo, normal = _transient_hits(o, d, transients)
-  front = t < buffers["t"]
-  col = buffers["col"].copy()
-  col[front] = _shade(o[front], d[front], t[front],
-                      np.full(int(front.sum()), _TRANSIENT), normal[front],
-                      albedo[front])
+  t, colour = raycast.transients(o, d, transients, buffers["t"])
+  front = np.isfinite(t)
+  col = np.where(front[:, None], colour, buffers["col"])
   mask = _downsample(front.astype(np.float64)[:, None], cam, SUPERSAMPLE)
   # A pixel is transient if any of its samples sees a transient: every
   # contaminated pixel is marked.
-  return _downsample(col, cam, SUPERSAMPLE), mask[..., 0] > 0
+  cluttered = {"o": o, "d": d, "t": np.where(front, t, buffers["t"]),
+               "col": col, "transient": front}
+  return _downsample(col, cam, SUPERSAMPLE), mask[..., 0] > 0, cluttered
 
 
 def _sample_points(rng, buffers):
-  """Sparse points from one clean view: (xyz [n, 3], rgb uint8 [n, 3])."""
+  """Sparse points from one view's samples.
+
+  Returns:
+    (xyz float64 [n, 3], rgb uint8 [n, 3], on_transient bool [n]).
+  """
   pick = rng.choice(len(buffers["t"]), NUM_POINTS_PER_VIEW, replace=False)
   # Every ray ends on the backdrop at the latest, so t is finite.
   xyz = buffers["o"][pick] + buffers["t"][pick, None] * buffers["d"][pick]
   xyz += rng.normal(0, POINT_NOISE, xyz.shape)
   rgb = np.round(np.clip(buffers["col"][pick], 0, 1) * 255)
-  return xyz, rgb.astype(np.uint8)
+  return xyz, rgb.astype(np.uint8), buffers["transient"][pick]
 
 
 def _write_model(folder, named_cams, points, colors):
@@ -371,9 +198,13 @@ A procedural scene generated by clipgs_jax (clipgs_jax/data/default_scene.py,
 seed {seed}): a textured ground, four primitives and a sky backdrop, ray cast
 with 2x2 supersampling. RobustNeRF layout: images/0cleanNNN.png (clean twins
 of the training views), images/1extraNNN.png (clean test views),
-images/2clutterNNN.png (training views; some contain transient people and
-balloons), masks/2clutterNNN.png (white = transient pixel), sparse/0 (COLMAP
-PINHOLE model; points sampled from the static surfaces), transients.json.
+images/2clutterNNN.png (training views; every one contains transient people,
+crates or balloons, each of which stays at one place for a run of 3-6
+consecutive views, as RobustNeRF's distractors do), masks/2clutterNNN.png
+(white = transient pixel), sparse/0 (COLMAP PINHOLE model; points sampled
+from the surfaces the training views see, transients included, as structure
+from motion triangulates objects that stay put), transients.json (the
+objects, their runs of views, and each view's objects).
 
 License: CC0 1.0 (public domain dedication). Generated data, no third-party
 content.
@@ -393,29 +224,48 @@ def _describe(transient) -> dict:
   return out
 
 
+def _object_pixels(cam, buffers, tr) -> int:
+  """Pixels of `cam` in which the object alone is in front of the scene."""
+  return int(_render_cluttered(cam, buffers, [tr])[1].sum())
+
+
+def _place_objects(rng, train, buffers):
+  """[(object, views)]: one object per run, seen by every view of it."""
+  placed = []
+  for first, length in _schedule(rng):
+    views = list(range(first, first + length))
+    for _ in range(MAX_PLACEMENT_TRIES):
+      tr = _random_object(rng, [train[k] for k in views])
+      if all(_object_pixels(train[k], buffers[k], tr) >= MIN_TRANSIENT_PIXELS
+             for k in views):
+        break
+    else:
+      raise RuntimeError(f"default scene: no placement of the object for "
+                         f"views {views} is visible in all of them; "
+                         f"TRANSIENT_RADII or RUN_LENGTHS are inconsistent")
+    placed.append((tr, views))
+  return placed
+
+
 def generate(folder: str) -> None:
   """Writes the default scene into `folder` (which must not exist)."""
   rng = np.random.default_rng(SEED)
   train, test = _cameras()
   img_dir = os.path.join(folder, "images")
   named = {}
-  points, colors, views = [], [], []
-  cluttered = set(rng.permutation(NUM_TRAIN)[:NUM_CLUTTERED].tolist())
-  for k, cam in enumerate(train):
-    clean, buffers = _render_static(cam)
-    xyz, rgb = _sample_points(rng, buffers)
+  points, colors, labels, views = [], [], [], []
+  renders = [_render_static(cam) for cam in train]
+  placed = _place_objects(rng, train, [b for _, b in renders])
+  for k, (cam, (clean, buffers)) in enumerate(zip(train, renders)):
+    here = [(i, tr) for i, (tr, run) in enumerate(placed) if k in run]
+    image, mask, seen = _render_cluttered(cam, buffers,
+                                          [tr for _, tr in here])
+    # Structure from motion triangulates what the training views show: an
+    # object that stays put for several views gets points too.
+    xyz, rgb, on_transient = _sample_points(rng, seen)
     points.append(xyz)
     colors.append(rgb)
-    transients, image, mask = [], clean, np.zeros(clean.shape[:2], bool)
-    if k in cluttered:
-      for _ in range(1 + int(rng.random() < 0.5)):
-        for _ in range(20):             # resample until clearly visible
-          tr = _random_transient(rng, cam)
-          img_k, mask_k = _render_cluttered(cam, buffers, transients + [tr])
-          if (mask_k & ~mask).sum() >= MIN_TRANSIENT_PIXELS:
-            transients.append(tr)
-            image, mask = img_k, mask_k
-            break
+    labels.append(on_transient)
     names = (f"0clean{k:03d}.png", f"2clutter{k:03d}.png")
     images.write_png(os.path.join(img_dir, names[0]), clean)
     images.write_png(os.path.join(img_dir, names[1]), image)
@@ -424,7 +274,7 @@ def generate(folder: str) -> None:
     views.append({
         "name": names[1], "clean": names[0], "mask": f"masks/{names[1]}",
         "transient_pixels": int(mask.sum()),
-        "transients": [_describe(tr) for tr in transients]})
+        "transients": [{"id": i, **_describe(tr)} for i, tr in here]})
   for k, cam in enumerate(test):
     name = f"1extra{k:03d}.png"
     images.write_png(os.path.join(img_dir, name), _render_static(cam)[0])
@@ -434,9 +284,17 @@ def generate(folder: str) -> None:
   files = sorted([f"images/{n}" for n in named] + [v["mask"] for v in views] +
                  [f"sparse/0/{f}" for f in os.listdir(
                      os.path.join(folder, "sparse", "0"))] + ["README.txt"])
+  objects = [{"id": i, "views": [views[k]["name"] for k in run],
+              **_describe(tr)} for i, (tr, run) in enumerate(placed)]
   manifest = {"generator": "clipgs_jax.data.default_scene",
               "version": VERSION, "seed": SEED, "width": WIDTH,
-              "height": HEIGHT, "views": views, "files": files}
+              "height": HEIGHT, "views": views, "objects": objects,
+              "num_points": sum(len(p) for p in points),
+              # Rows of the sparse model (in point3D id order, as
+              # scene.load_scene returns them) that lie on a transient.
+              "transient_points": np.flatnonzero(
+                  np.concatenate(labels)).tolist(),
+              "files": files}
   with open(os.path.join(folder, "README.txt"), "w") as f:
     f.write(_README.format(version=VERSION, seed=SEED))
   with open(os.path.join(folder, "transients.json"), "w") as f:
@@ -460,7 +318,8 @@ def ensure_default_scene(cache_dir: str | None = None) -> str:
 
   Args:
     cache_dir: str or None, parent folder; default `colmap.cache_root()`
-      (~/.cache/clipgs_jax). The scene is `<cache_dir>/default_scene_v1`.
+      (~/.cache/clipgs_jax). The scene is `<cache_dir>/default_scene_vN`,
+      N = VERSION; a scene written by another version is rebuilt.
 
   Returns:
     str, the scene folder, ready for `scene.load_scene`.
