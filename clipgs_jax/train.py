@@ -181,8 +181,9 @@ def train_step(state: TrainState, batch: Batch, scorer=None, *,
     proj = project.project(params, state.alive, cam, near=cfg.render.near,
                            sh_degree=degree)
     proj = proj.replace(means2d=proj.means2d + offset)
-    out = rasterize.rasterize(proj, cam, bg, cfg.render,
-                              evidence_map=evidence_map)
+    out = rasterize.rasterize(
+        proj, cam, bg, cfg.render,
+        evidence_map=None if sem.agreement else evidence_map)
     loss, terms = losses.photometric(out.image, target,
                                      cfg.train.lambda_dssim, loss_weight)
     if scorer is not None:
@@ -223,8 +224,14 @@ def train_step(state: TrainState, batch: Batch, scorer=None, *,
   if localized:
     metrics["semantic_loss"] = terms["semantic_loss"]
     due = guidance.scores_due(step, sem)
+    if sem.agreement:
+      evidence, contribution, visible = _agreement_evidence(
+          due, proj, cam, bg, cfg, evidence_map, out.image, target)
+    else:
+      evidence, contribution, visible = (out.evidence, out.contribution,
+                                         out.visible)
     semantic_stats = semantic_lib.accumulate_pixel(
-        state.semantic, out.evidence, out.contribution, out.visible, due)
+        state.semantic, evidence, contribution, visible, due)
     metrics.update(map_mean=jnp.where(due, jnp.mean(evidence_map), jnp.nan),
                    view=view)
   elif scorer is not None:
@@ -238,6 +245,29 @@ def train_step(state: TrainState, batch: Batch, scorer=None, *,
                             densify=stats, semantic=semantic_stats,
                             step=step + 1)
   return new_state, metrics
+
+
+def _agreement_evidence(due, proj, cam, bg, cfg, evidence_map, image, target):
+  """Per-Gaussian (sum w m a, sum w, visible) with a = semantic.agreement.
+
+  The agreement needs the finished render, so the evidence comes from a
+  second forward pass of the same projected splats (no gradient), run
+  only on scoring steps (lax.cond); other steps return zeros.
+  """
+  proj = jax.lax.stop_gradient(proj)
+  weighted = evidence_map * semantic_lib.agreement(
+      jax.lax.stop_gradient(image), target)
+
+  def render():
+    out = rasterize.rasterize(proj, cam, bg, cfg.render,
+                              evidence_map=weighted)
+    return out.evidence, out.contribution, out.visible
+
+  def skip():
+    zeros = jnp.zeros_like(proj.depths)
+    return zeros, zeros, jnp.zeros(zeros.shape, bool)
+
+  return jax.lax.cond(due, render, skip)
 
 
 @functools.lru_cache(maxsize=None)

@@ -300,7 +300,7 @@ class WiredStepTest(absltest.TestCase):
     return state, after, metrics
 
   def test_pixel_step_accumulates_the_map(self):
-    _, after, metrics = self._pixel_step(0.25)
+    _, after, metrics = self._pixel_step(0.25, agreement=False)
     stats = after.semantic
     seen = np.asarray(stats.weight) > 0
     self.assertGreater(seen.sum(), 10)
@@ -311,6 +311,21 @@ class WiredStepTest(absltest.TestCase):
                                rtol=1e-5)
     np.testing.assert_array_equal(np.asarray(stats.n), seen.astype(float))
     self.assertAlmostEqual(float(metrics["map_mean"]), 0.25, places=6)
+
+  def test_agreement_weights_the_map(self):
+    _, raw, _ = self._pixel_step(0.25, agreement=False)
+    _, weighted, _ = self._pixel_step(0.25)
+    # The same Gaussians carry the same blending weight (the second pass
+    # renders the same splats); only the evidence shrinks, pixel by pixel,
+    # where the step-0 render does not reproduce the photo.
+    np.testing.assert_allclose(weighted.semantic.weight, raw.semantic.weight,
+                               rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(weighted.semantic.n, raw.semantic.n)
+    acc_raw = np.asarray(raw.semantic.acc)
+    acc = np.asarray(weighted.semantic.acc)
+    self.assertTrue(np.all(acc <= acc_raw + 1e-6))
+    self.assertLess(acc.sum(), acc_raw.sum())
+    self.assertGreater(acc.sum(), 0.0)
 
   def test_loss_masking_ignores_masked_pixels(self):
     # A fully transient map with loss masking: no pixel is fitted, so the

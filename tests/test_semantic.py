@@ -163,6 +163,13 @@ class NormalizeLossPruneTest(parameterized.TestCase):
     np.testing.assert_allclose(stats.weight, [4.0, 2.0, 0.0])
     np.testing.assert_allclose(stats.n, [2.0, 2.0, 0.0])
 
+  def test_agreement(self):
+    photo = jnp.zeros((1, 4, 3))
+    render = photo.at[0, 1].set(0.05).at[0, 2].set(0.1).at[0, 3].set(0.5)
+    # Mean colour error 0, 0.05, 0.1, 0.5 against tolerance 0.1.
+    np.testing.assert_allclose(semantic.agreement(render, photo),
+                               [[1.0, 0.5, 0.0, 0.0]], atol=1e-6)
+
   def test_min_weight_keeps_thin_evidence(self):
     # s = 1 on both rows, but row 1 has under one pixel of evidence.
     stats = _stats([3.0, 0.4], [3.0, 1.0], weight=[3.0, 0.4])
