@@ -14,8 +14,11 @@ from clipgs_jax.data import distractors
 
 # Depth of the billboard centre along the middle view's optical axis, as a
 # fraction of the near scene depth (NEAR_QUANTILE of the SfM points that
-# view sees): well in front of the content, not at the lens.
-MIN_DEPTH, MAX_DEPTH = 0.3, 0.6
+# view sees), in stages of (low, high, tries): well in front of the content
+# first; a run whose cameras turn so far that no such billboard stays in
+# all its views (parallax; on bonsai 5 views span 20-57 degrees) gets a
+# deeper one, still in front of the near content.
+DEPTH_STAGES = ((0.3, 0.6, 200), (0.6, 0.9, 300))
 NEAR_QUANTILE = 0.1
 # The centre is aimed at a pixel this far inside the middle view's border,
 # and must project at least this far inside every view of the run, so the
@@ -25,7 +28,6 @@ VISIBLE_MARGIN = 0.05
 # Every corner must be at least this fraction of the near depth in front
 # of every camera of the run (no billboard crosses a camera plane).
 MIN_CORNER_DEPTH = 0.05
-MAX_TRIES = 200           # placements tried before giving up (with error)
 
 
 def camera_centre(rotation: np.ndarray, translation: np.ndarray):
@@ -101,7 +103,8 @@ def place(rng: np.random.Generator, photo_size, rotations, translations,
 
   Its size in the middle view follows `distractors.paste_size` (15-45 % of
   the height); its centre lies on the ray of a random pixel of the middle
-  view at MIN_DEPTH..MAX_DEPTH of that view's near scene depth.
+  view at a depth from DEPTH_STAGES (fractions of that view's near scene
+  depth).
 
   Args:
     rng: the run's generator.
@@ -114,13 +117,29 @@ def place(rng: np.random.Generator, photo_size, rotations, translations,
     float64 [4, 3], corners TL, TR, BR, BL in world coordinates.
   """
   mid = len(rotations) // 2
+  near = near_depth(points, rotations[mid], translations[mid],
+                    intrinsics[mid], sizes[mid])
+  for low, high, tries in DEPTH_STAGES:
+    corners = _try_place(rng, photo_size, rotations, translations,
+                         intrinsics, sizes, near, low, high, tries)
+    if corners is not None:
+      return corners
+  raise ValueError(f"could not place a billboard seen by all {len(sizes)} "
+                   f"views of a run in {sum(t for _, _, t in DEPTH_STAGES)} "
+                   "tries; pass a smaller --persist_views.")
+
+
+def _try_place(rng, photo_size, rotations, translations, intrinsics, sizes,
+               near, low, high, tries):
+  """Corners [4, 3] of the first of `tries` random placements at depth
+  low..high * near that every camera sees, or None."""
+  mid = len(rotations) // 2
   rot, trans, (fx, fy, cx, cy) = rotations[mid], translations[mid], (
       intrinsics[mid])
   width, height = sizes[mid]
-  near = near_depth(points, rot, trans, intrinsics[mid], sizes[mid])
-  for _ in range(MAX_TRIES):
+  for _ in range(tries):
     w_pix, h_pix = distractors.paste_size(rng, photo_size, width, height)
-    depth = rng.uniform(MIN_DEPTH, MAX_DEPTH) * near
+    depth = rng.uniform(low, high) * near
     px = rng.uniform(CENTRE_MARGIN, 1 - CENTRE_MARGIN) * width
     py = rng.uniform(CENTRE_MARGIN, 1 - CENTRE_MARGIN) * height
     ray = np.array([(px - cx) / fx, (py - cy) / fy, 1.0])
@@ -132,9 +151,7 @@ def place(rng: np.random.Generator, photo_size, rotations, translations,
     if all(_visible(corners, centre, r, t, k, s, near) for r, t, k, s in
            zip(rotations, translations, intrinsics, sizes)):
       return corners
-  raise ValueError(f"could not place a billboard seen by all {len(sizes)} "
-                   f"views of a run in {MAX_TRIES} tries; pass a smaller "
-                   "--persist_views.")
+  return None
 
 
 def _visible(corners, centre, rotation, translation, intrinsics, size,
