@@ -227,3 +227,37 @@ def test_bad_persistent_args(built, tmp_path, kwargs, needle):
     transients.build(str(root / "scene"), str(root / "photos"),
                      str(tmp_path / "out"), seed=0, **kwargs)
   assert not (tmp_path / "out").exists()
+
+
+def _sliding_cameras(step, k=5):
+  """k cameras looking down +z, slid by `step` along x (forward-facing)."""
+  trans = np.stack([[-step * i, 0.0, 0.0] for i in range(k)])
+  return (np.tile(np.eye(3), (k, 1, 1)), trans,
+          np.tile([80.0, 80.0, 48.0, 36.0], (k, 1)),
+          np.tile([WIDTH, HEIGHT], (k, 1)))
+
+
+def test_place_deeper_when_the_run_moves_far():
+  """A wall of points at z = 5..5.5 seen by 5 cameras sliding 1 unit each:
+  from the middle view the end views are 2 units away, so a billboard at
+  depth d shifts by 80 * 2 / d pixels (96 wide). Within 0.3-0.6 of the
+  near depth (d <= 3: >= 53 px) it leaves some view; the second band
+  (d up to 4.5: >= 36 px) keeps it in all five. Sliding 3 units per view
+  needs d > 11, behind the wall: refused, naming the flag."""
+  points = np.random.default_rng(0).uniform([-20, -20, 5], [20, 20, 5.5],
+                                            (400, 3))
+  rots, trans, intr, sizes = _sliding_cameras(1.0)
+  near = billboards.near_depth(points, rots[2], trans[2], intr[2], sizes[2])
+  low, high, _ = billboards.DEPTH_STAGES[1]
+  for seed in range(3):
+    corners = billboards.place(np.random.default_rng(seed), (40, 50), rots,
+                               trans, intr, sizes, points)
+    centre = corners.mean(axis=0)[None]
+    _, z = billboards.project(centre, rots[2], trans[2], intr[2])
+    assert low * near <= z[0] <= high * near
+    for r, t, k in zip(rots, trans, intr):
+      xy, _ = billboards.project(centre, r, t, k)
+      assert 0 < xy[0, 0] < WIDTH and 0 < xy[0, 1] < HEIGHT
+  with pytest.raises(ValueError, match="--persist_views"):
+    billboards.place(np.random.default_rng(0), (40, 50),
+                     *_sliding_cameras(3.0), points)
