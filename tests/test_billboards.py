@@ -2,6 +2,9 @@
 
 import json
 import os
+import pathlib
+import subprocess
+import sys
 
 import numpy as np
 import pycolmap
@@ -12,6 +15,7 @@ from clipgs_jax.data import images
 from clipgs_jax.data import transients
 from test_colmap import _pose  # pylint: disable=g-bad-import-order
 
+ROOT = pathlib.Path(__file__).resolve().parents[1]
 WIDTH, HEIGHT = 96, 72
 NUM_VIEWS = 25            # tests 0, 8, 16, 24; 21 training views
 NUM_TRAIN = 21
@@ -261,3 +265,21 @@ def test_place_deeper_when_the_run_moves_far():
   with pytest.raises(ValueError, match="--persist_views"):
     billboards.place(np.random.default_rng(0), (40, 50),
                      *_sliding_cameras(3.0), points)
+
+
+def test_cli_persistent(built, tmp_path):
+  root, _ = built
+  out = tmp_path / "cli"
+  cmd = [sys.executable, str(ROOT / "experiments" /
+                             "make_transient_benchmark.py"),
+         f"--scene={root / 'scene'}", f"--distractors={root / 'photos'}",
+         f"--out={out}", "--seed=1", "--fraction=1", "--mode=persistent",
+         "--persist_views=4"]
+  env = dict(os.environ, PYTHONPATH=str(ROOT), JAX_PLATFORMS="cpu")
+  run = subprocess.run(cmd, env=env, capture_output=True, text=True,
+                       check=False, timeout=120)
+  assert run.returncode == 0, run.stderr
+  assert "(persistent)" in run.stdout and "of 4 views" in run.stdout
+  manifest = json.loads((out / "transients.json").read_text())
+  assert manifest["persist_views"] == 4
+  assert all(len(b["views"]) == 4 for b in manifest["billboards"])
