@@ -303,13 +303,12 @@ def build(scene: str, distractor_dir: str, out: str, seed: int,
   lo_hi = parse_per_view(per_view)
   out = os.path.abspath(out)
   _prepare_out(out, overwrite)
-  photo_list = distractors.list_photos(distractor_dir)
+  distractors.list_photos(distractor_dir)   # its errors before any work
   model = load_source(scene, cache_dir)
   if mode == "persistent":     # checked before any work is done
     billboards.make_runs(len(split_views(len(model.names))[0]),
                          persist_views)
-  photos = [(os.path.relpath(p, distractor_dir), c, images.read_image(p))
-            for p, c in photo_list]
+  photos = distractors.load_photos(distractor_dir)
   os.makedirs(os.path.dirname(out), exist_ok=True)
   tmp = f"{out}.tmp-{uuid.uuid4().hex[:8]}"
   try:
