@@ -1,4 +1,4 @@
-"""Tests for experiments/make_transient_benchmark.py on tiny scenes."""
+"""Tests for the transient benchmark builder (independent mode, CLI)."""
 
 import json
 import os
@@ -6,22 +6,20 @@ import pathlib
 import subprocess
 import sys
 
-from absl import app
 import numpy as np
 import pycolmap
 import pytest
 
 from clipgs_jax.data import colmap
+from clipgs_jax.data import distractors
 from clipgs_jax.data import images
 from clipgs_jax.data import scene as scene_lib
-
-ROOT = pathlib.Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "experiments"))
-# pylint: disable-next=g-import-not-at-top,wrong-import-position
-import make_transient_benchmark as bench
+from clipgs_jax.data import transients
+import shared_data
 from test_colmap import _pose  # pylint: disable=g-bad-import-order
 
-DATA = ROOT.parent / "shared" / "data"
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+DATA = shared_data.DATA
 WIDTH, HEIGHT = 64, 48
 NUM_VIEWS = 17                   # tests 0, 8, 16; 14 training views
 TEST_IDX = (0, 8, 16)
@@ -77,7 +75,7 @@ def source(tmp_path_factory):
 
 def _build(source, out, **kwargs):
   kwargs.setdefault("seed", 3)
-  return bench.build(source["scene"], source["photos"], str(out), **kwargs)
+  return transients.build(source["scene"], source["photos"], str(out), **kwargs)
 
 
 @pytest.fixture(scope="module")
@@ -229,7 +227,7 @@ def test_overwrite(source, tmp_path):
   out = tmp_path / "o"
   out.mkdir()
   (out / "stale.txt").write_text("x")
-  with pytest.raises(app.UsageError, match="--overwrite"):
+  with pytest.raises(ValueError, match="--overwrite"):
     _build(source, out, fraction=0.0)
   manifest = _build(source, out, fraction=0.0, per_view="2", overwrite=True)
   assert manifest["num_cluttered"] == 0 and not (out / "stale.txt").exists()
@@ -241,7 +239,7 @@ def test_overwrite(source, tmp_path):
     ({"scene": "empty"}, "--scene"),
     ({"photos": "missing"}, "--distractors"),
     ({"photos": "empty"}, "--distractors"),
-    ({"photos": "unknown"}, "person_"),
+    ({"photos": "unknown"}, "dog.png"),
     ({"fraction": 1.5}, "--fraction"),
     ({"fraction": -0.1}, "--fraction"),
     ({"per_view": "0"}, "--per_view"),
@@ -259,8 +257,8 @@ def test_bad_input(source, tmp_path, kwargs, needle):
   scene = paths.get(kwargs.pop("scene", None), source["scene"])
   photos = paths.get(kwargs.pop("photos", None), source["photos"])
   kwargs.setdefault("seed", 0)
-  with pytest.raises(app.UsageError) as e:
-    bench.build(scene, photos, str(tmp_path / "out"), **kwargs)
+  with pytest.raises((ValueError, FileNotFoundError)) as e:
+    transients.build(scene, photos, str(tmp_path / "out"), **kwargs)
   assert "\n" not in str(e.value) and needle in str(e.value), str(e.value)
   assert not (tmp_path / "out").exists()
 
@@ -268,12 +266,12 @@ def test_bad_input(source, tmp_path, kwargs, needle):
 @pytest.mark.parametrize("text,want", [("1..3", (1, 3)), ("2", (2, 2)),
                                        (" 2..2 ", (2, 2))])
 def test_parse_per_view(text, want):
-  assert bench.parse_per_view(text) == want
+  assert transients.parse_per_view(text) == want
 
 
 @pytest.mark.parametrize("shape", ["ellipse", "rounded_rect"])
 def test_shape_alpha(shape):
-  alpha = bench.shape_alpha(60, 40, shape)
+  alpha = distractors.shape_alpha(60, 40, shape)
   assert alpha.shape == (40, 60) and alpha.dtype == np.float32
   assert alpha[20, 30] == 1 and alpha[0, 0] == 0
   # Zero on the box border, symmetric, soft: some values strictly between.
@@ -292,7 +290,7 @@ def test_distorted_source_uses_undistorted_frame(tmp_path):
   del pixels
   _write_photos(str(tmp_path / "p"))
   cache = str(tmp_path / "cache")
-  manifest = bench.build(str(tmp_path / "s"), str(tmp_path / "p"),
+  manifest = transients.build(str(tmp_path / "s"), str(tmp_path / "p"),
                          str(tmp_path / "out"), seed=0, fraction=1.0,
                          cache_dir=cache)
   assert manifest["undistorted"] and manifest["num_train"] == 7
@@ -323,20 +321,39 @@ def test_cli(source, tmp_path):
                        check=False, timeout=120)
   assert run.returncode == 0, run.stderr
   assert f"{NUM_TRAIN} cluttered" in run.stdout
+  assert "(independent)" in run.stdout
   manifest = json.loads((out / "transients.json").read_text())
   assert manifest["per_view"] == [1, 2] and manifest["seed"] == 1
 
 
-@pytest.mark.skipif(not (DATA / "distractors").is_dir(),
-                    reason=f"real photos not found at {DATA / 'distractors'} "
-                    "(a fresh clone has no ../shared)")
+@shared_data.needs_data("distractors")
 def test_real_distractors(source, tmp_path):
-  photos = bench.list_photos(str(DATA / "distractors"))
+  photos = distractors.list_photos(str(DATA / "distractors"))
   by_name = {os.path.basename(p): c for p, c in photos}
   assert len(photos) == 8 and sorted(by_name.values()).count("person") == 5
-  manifest = bench.build(source["scene"], str(DATA / "distractors"),
+  manifest = transients.build(source["scene"], str(DATA / "distractors"),
                          str(tmp_path / "real"), seed=0, fraction=1.0)
   assert manifest["num_cluttered"] == NUM_TRAIN
   for v in manifest["views"]:
     for t in v["transients"]:
       assert t["category"] == by_name[t["photo"]]
+
+
+def test_cli_error_is_one_line(source, tmp_path):
+  """A photo without a category: exit 1, one stderr line naming it, no
+  output folder and no help text."""
+  (tmp_path / "photos").mkdir()
+  images.write_png(str(tmp_path / "photos" / "dog.png"), np.zeros((4, 4, 3)))
+  out = tmp_path / "cli"
+  cmd = [sys.executable, str(ROOT / "experiments" /
+                             "make_transient_benchmark.py"),
+         f"--scene={source['scene']}", f"--distractors={tmp_path / 'photos'}",
+         f"--out={out}", "--seed=1"]
+  env = dict(os.environ, PYTHONPATH=str(ROOT), JAX_PLATFORMS="cpu")
+  run = subprocess.run(cmd, env=env, capture_output=True, text=True,
+                       check=False, timeout=120)
+  assert run.returncode == 1
+  lines = run.stderr.strip().splitlines()
+  assert len(lines) == 1 and lines[0].startswith("error: "), run.stderr
+  assert str(tmp_path / "photos" / "dog.png") in lines[0]
+  assert not out.exists()
