@@ -14,12 +14,11 @@ file names of ../shared/data/distractors (see
 and exit status 1; nothing is left in --out.
 """
 
-import sys
 import time
 
-from absl import app
 from absl import flags
 
+from clipgs_jax import cli
 from clipgs_jax.data import transients
 
 FLAGS = flags.FLAGS
@@ -51,17 +50,13 @@ def _define_flags() -> None:
 
 
 def main(argv):
-  if len(argv) > 1:
-    raise app.UsageError(f"unexpected arguments {argv[1:]}")
+  cli.no_arguments(argv)
   tic = time.perf_counter()
-  try:
-    manifest = transients.build(
-        FLAGS.scene, FLAGS.distractors, FLAGS.out, FLAGS.seed,
-        fraction=FLAGS.fraction, per_view=FLAGS.per_view,
-        overwrite=FLAGS.overwrite, cache_dir=FLAGS.cache_dir,
-        mode=FLAGS.mode, persist_views=FLAGS.persist_views)
-  except (ValueError, FileNotFoundError) as e:
-    sys.exit(f"error: {e}")
+  manifest = transients.build(
+      FLAGS.scene, FLAGS.distractors, FLAGS.out, FLAGS.seed,
+      fraction=FLAGS.fraction, per_view=FLAGS.per_view,
+      overwrite=FLAGS.overwrite, cache_dir=FLAGS.cache_dir,
+      mode=FLAGS.mode, persist_views=FLAGS.persist_views)
   counts = ", ".join(f"{n} {c}" for c, n in
                      sorted(manifest["transients_by_category"].items()))
   boards = (f", {len(manifest['billboards'])} billboards of "
@@ -75,4 +70,4 @@ def main(argv):
 
 if __name__ == "__main__":
   _define_flags()
-  app.run(main)
+  cli.run(main)
