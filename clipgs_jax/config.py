@@ -129,9 +129,10 @@ class SemanticConfig:
   #   view (n_j still counts views; see semantic.accumulate)
   clip_variant: str = "ViT-B/32"  # frozen tower; 224x224 resized input
   oracle_saturation: float = 0.1  # transient area fraction that scores 1.0
-  agreement: bool = True       # pixel evidence: weight m by how well the
-  #   render reproduces the photo (semantic.agreement), in a second forward
-  #   pass on scored steps; False: the raw map, in the render's own pass
+  agreement: bool = True       # pixel evidence: a transient pixel counts
+  #   as far as the render reproduces the photo (semantic.agreement; a
+  #   second forward pass on scored steps), the rest of it not at all;
+  #   False: the raw map, in the render's own pass
   loss_masking: bool = False   # pixel evidence: weight the photometric loss
   #   per pixel by 1 - m (robust-3DGS style); off in the paper
   max_prune_fraction: float = 0.5  # a prune event that would remove more

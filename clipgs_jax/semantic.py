@@ -21,12 +21,12 @@ NEUTRAL_SCORE = 0.5
 # ratio of a few partial edge pixels, and one misclassified pixel can move
 # it across any threshold.
 MIN_EVIDENCE_WEIGHT = 1.0
-# Agreement-weighted pixel evidence: a transient pixel is evidence against
+# Agreement-weighted pixel evidence: a transient pixel is evidence about
 # the Gaussians that draw it only in proportion to how well the render
 # reproduces the photo there, falling linearly to 0 at this mean absolute
-# colour error. A Gaussian that fits the transient (a ghost) reproduces it;
-# a static Gaussian that the transient hides in this photo draws something
-# else there. 0.1 (26/255) is about twice a fitted render's L1 error on the
+# colour error; the rest of its weight counts neither way. A Gaussian that
+# fits the transient (a ghost) reproduces it; a static Gaussian that the
+# transient hides in this photo draws something else there. 0.1 (26/255) is about twice a fitted render's L1 error on the
 # benchmarks at 1000 steps (train l1 0.03-0.05) and well below the contrast
 # of a pasted object against what it hides.
 AGREEMENT_TOLERANCE = 0.1
@@ -104,7 +104,9 @@ def accumulate_pixel(stats: densify.SemanticStats, evidence: jax.Array,
   Args:
     stats: per-row acc, weight and n, float [C].
     evidence: float [C], the rasterizer's sum_i w_ij m_i for the map m.
-    contribution: float [C], the rasterizer's sum_i w_ij.
+    contribution: float [C], the weight s_j is a share of: the
+      rasterizer's sum_i w_ij (less, under agreement weighting, the weight
+      on transient pixels that the render does not reproduce).
     visible: bool [C], contribution > 0; n counts the views.
     due: bool [], this step scores (otherwise the stats are unchanged).
   """

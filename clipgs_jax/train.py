@@ -181,9 +181,8 @@ def train_step(state: TrainState, batch: Batch, scorer=None, *,
     proj = project.project(params, state.alive, cam, near=cfg.render.near,
                            sh_degree=degree)
     proj = proj.replace(means2d=proj.means2d + offset)
-    out = rasterize.rasterize(
-        proj, cam, bg, cfg.render,
-        evidence_map=None if sem.agreement else evidence_map)
+    out = rasterize.rasterize(proj, cam, bg, cfg.render,
+                              evidence_map=evidence_map)
     loss, terms = losses.photometric(out.image, target,
                                      cfg.train.lambda_dssim, loss_weight)
     if scorer is not None:
@@ -224,14 +223,17 @@ def train_step(state: TrainState, batch: Batch, scorer=None, *,
   if localized:
     metrics["semantic_loss"] = terms["semantic_loss"]
     due = guidance.scores_due(step, sem)
+    evidence, weight = out.evidence, out.contribution
     if sem.agreement:
-      evidence, contribution, visible = _agreement_evidence(
-          due, proj, cam, bg, cfg, evidence_map, out.image, target)
-    else:
-      evidence, contribution, visible = (out.evidence, out.contribution,
-                                         out.visible)
+      # Transient pixels that the render does not reproduce say nothing
+      # about the Gaussians drawn there (the photo hides them, or the
+      # transient is not fitted yet): they leave numerator and denominator.
+      reproduced = _reproduced_evidence(due, proj, cam, bg, cfg,
+                                        evidence_map, out.image, target)
+      weight = jnp.maximum(weight - evidence + reproduced, 0.0)
+      evidence = reproduced
     semantic_stats = semantic_lib.accumulate_pixel(
-        state.semantic, evidence, contribution, visible, due)
+        state.semantic, evidence, weight, out.visible, due)
     metrics.update(map_mean=jnp.where(due, jnp.mean(evidence_map), jnp.nan),
                    view=view)
   elif scorer is not None:
@@ -247,27 +249,22 @@ def train_step(state: TrainState, batch: Batch, scorer=None, *,
   return new_state, metrics
 
 
-def _agreement_evidence(due, proj, cam, bg, cfg, evidence_map, image, target):
-  """Per-Gaussian (sum w m a, sum w, visible) with a = semantic.agreement.
+def _reproduced_evidence(due, proj, cam, bg, cfg, evidence_map, image,
+                         target):
+  """float [C], sum_i w_ij m_i a_i with a = semantic.agreement(render, photo).
 
-  The agreement needs the finished render, so the evidence comes from a
-  second forward pass of the same projected splats (no gradient), run
-  only on scoring steps (lax.cond); other steps return zeros.
+  The agreement needs the finished render, so this is a second forward
+  pass of the same projected splats (no gradient), run only on scoring
+  steps (lax.cond); other steps return zeros.
   """
   proj = jax.lax.stop_gradient(proj)
   weighted = evidence_map * semantic_lib.agreement(
       jax.lax.stop_gradient(image), target)
-
-  def render():
-    out = rasterize.rasterize(proj, cam, bg, cfg.render,
-                              evidence_map=weighted)
-    return out.evidence, out.contribution, out.visible
-
-  def skip():
-    zeros = jnp.zeros_like(proj.depths)
-    return zeros, zeros, jnp.zeros(zeros.shape, bool)
-
-  return jax.lax.cond(due, render, skip)
+  return jax.lax.cond(
+      due,
+      lambda: rasterize.rasterize(proj, cam, bg, cfg.render,
+                                  evidence_map=weighted).evidence,
+      lambda: jnp.zeros_like(proj.depths))
 
 
 @functools.lru_cache(maxsize=None)

@@ -315,14 +315,16 @@ class WiredStepTest(absltest.TestCase):
   def test_agreement_weights_the_map(self):
     _, raw, _ = self._pixel_step(0.25, agreement=False)
     _, weighted, _ = self._pixel_step(0.25)
-    # The same Gaussians carry the same blending weight (the second pass
-    # renders the same splats); only the evidence shrinks, pixel by pixel,
-    # where the step-0 render does not reproduce the photo.
-    np.testing.assert_allclose(weighted.semantic.weight, raw.semantic.weight,
-                               rtol=1e-5, atol=1e-6)
+    # The second pass renders the same splats: the weight on static pixels,
+    # sum w (1 - m), is unchanged; transient weight counts only where the
+    # step-0 render reproduces the photo, in numerator and denominator.
+    acc_raw, w_raw = (np.asarray(raw.semantic.acc),
+                      np.asarray(raw.semantic.weight))
+    acc, w = (np.asarray(weighted.semantic.acc),
+              np.asarray(weighted.semantic.weight))
+    np.testing.assert_allclose(w - acc, w_raw - acc_raw, rtol=1e-5,
+                               atol=1e-5)
     np.testing.assert_array_equal(weighted.semantic.n, raw.semantic.n)
-    acc_raw = np.asarray(raw.semantic.acc)
-    acc = np.asarray(weighted.semantic.acc)
     self.assertTrue(np.all(acc <= acc_raw + 1e-6))
     self.assertLess(acc.sum(), acc_raw.sum())
     self.assertGreater(acc.sum(), 0.0)
