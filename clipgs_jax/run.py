@@ -92,6 +92,8 @@ def semantic_label(sem: config_lib.SemanticConfig) -> str:
   variant = ""
   if not sem.localized and sem.weighting != "visibility":
     variant += f", {sem.weighting}-weighted accumulation"
+  if sem.localized and not sem.agreement:
+    variant += ", raw map (no agreement)"
   if sem.loss_masking:
     variant += ", loss masking"
   if sem.lambda_c == 0:

@@ -5,7 +5,7 @@
       [--random_background] [--lpips_net=alex|vgg] [--curve_points=20]
       [--tile_budget=K] [--checkpoint_every=N]
       [--semantic=off|clip|oracle] [--evidence=image|pixel] [--tau_p=P]
-      [--loss_masking] [--max_prune_fraction=F]
+      [--loss_masking] [--noagreement] [--max_prune_fraction=F]
       [--distractor_prompts=P1,P2,...]
       [--static_prompts=...] [--tau=T] [--clip_weights=PATH]
       [--score_every=K] [--semantic_weighting=visibility|contribution]
@@ -117,6 +117,10 @@ _EVIDENCE = flags.DEFINE_enum(
 _TAU_P = flags.DEFINE_float(
     "tau_p", None, "Pixel evidence: prune where the probability s_j "
     "exceeds this (default 0.5, the same for every scene).")
+_AGREEMENT = flags.DEFINE_bool(
+    "agreement", True, "Pixel evidence: a transient pixel counts only as far "
+    "as the render reproduces the photo there (--noagreement: the raw map, "
+    "measured in BUILD_NOTES).")
 _LOSS_MASKING = flags.DEFINE_bool(
     "loss_masking", False, "Pixel evidence: weight the photometric loss "
     "per pixel by 1 - m.")
@@ -188,7 +192,8 @@ def config_from_flags(embedded: bool) -> config_lib.Config:
       distractor_prompts=tuple(_DISTRACTOR_PROMPTS.value),
       static_prompts=tuple(_STATIC_PROMPTS.value),
       weighting=_SEMANTIC_WEIGHTING.value, prune=_SEMANTIC_PRUNE.value,
-      evidence=_EVIDENCE.value, loss_masking=_LOSS_MASKING.value)
+      evidence=_EVIDENCE.value, loss_masking=_LOSS_MASKING.value,
+      agreement=_AGREEMENT.value)
   if _TAU_P.value is not None:
     sem = dataclasses.replace(sem, tau_p=_TAU_P.value)
   if _MAX_PRUNE_FRACTION.value is not None:
