@@ -34,10 +34,6 @@ _CLIP_WEIGHTS = flags.DEFINE_string(
     "guidance by dense CLIP instead of the ORACLE-PIXEL masks.")
 flags.mark_flag_as_required("workdir")
 
-# The embedded scene at 700 steps: clean upper bound 19.94 dB against
-# vanilla 15.20 dB (BUILD_NOTES, "Embedded default scene v2"), and both
-# runs fit the README's 10 minutes on 2 cores.
-STEPS = 700
 # Loss masking on: measured on this scene in BUILD_NOTES ("Localized
 # evidence"); without it pruned ghosts regrow from the photometric loss.
 LOSS_MASKING = True
@@ -61,7 +57,7 @@ def main(argv):
     raise app.UsageError(f"unexpected arguments {argv[1:]}")
   workdir = os.path.abspath(_WORKDIR.value)
   use_clip = bool(_CLIP_WEIGHTS.value)
-  cfgs = configs(STEPS, use_clip)
+  cfgs = configs(default_scene.TRAIN_STEPS, use_clip)
   scene_path = default_scene.ensure_default_scene()
   scene = scene_lib.load_scene(scene_path)
   metrics = {}

@@ -13,7 +13,7 @@
 
 Without --scene, the embedded default scene
 (data.default_scene.ensure_default_scene()) is used, with
-EMBEDDED_SCENE_STEPS steps unless --steps is given.
+default_scene.TRAIN_STEPS steps unless --steps is given.
 
 Writes into --workdir (every file atomically: temp file + rename):
   run.json          the command-line choices (scene, downscale, ...)
@@ -71,10 +71,6 @@ from clipgs_jax.data import default_scene
 from clipgs_jax.data import scene as scene_lib
 
 
-# Steps for the embedded default scene (128x96, 24 training views): the
-# default preset then trains and evaluates in under 10 minutes on a 2-core
-# CPU (measured in BUILD_NOTES.md).
-EMBEDDED_SCENE_STEPS = 1000
 
 _SCENE = flags.DEFINE_string(
     "scene", None, "Scene folder (images/ + sparse/0/); default: the "
@@ -82,7 +78,7 @@ _SCENE = flags.DEFINE_string(
 _WORKDIR = flags.DEFINE_string("workdir", None, "Output folder.")
 _DOWNSCALE = flags.DEFINE_integer("downscale", 1, "Image downscale factor.")
 _STEPS = flags.DEFINE_integer("steps", None, "Training steps (default: the "
-                              "preset's, or EMBEDDED_SCENE_STEPS).")
+                              "preset's, or default_scene.TRAIN_STEPS).")
 _SEED = flags.DEFINE_integer("seed", None, "PRNG seed (default: preset's).")
 _PRESET = flags.DEFINE_enum("preset", "default", list(config_lib.PRESETS),
                             "default: 3DGS paper values; smoke: tiny CI run.")
@@ -164,7 +160,7 @@ def config_from_flags(embedded: bool) -> config_lib.Config:
   t = cfg.train
   steps = _STEPS.value
   if steps is None and embedded and _PRESET.value == "default":
-    steps = EMBEDDED_SCENE_STEPS
+    steps = default_scene.TRAIN_STEPS
   if steps is not None:
     if steps <= 0:
       raise app.UsageError(f"--steps must be positive, got {steps}.")
