@@ -15,15 +15,16 @@ import dataclasses
 import json
 import os
 
-from absl import app
 from absl import flags
 import numpy as np
 
 from clipgs_jax import checkpoint
+from clipgs_jax import cli
 from clipgs_jax import config as config_lib
 from clipgs_jax import guidance
 from clipgs_jax import plots
 from clipgs_jax import run as run_lib
+from clipgs_jax import train
 from clipgs_jax.data import default_scene
 from clipgs_jax.data import images as images_lib
 from clipgs_jax.data import scene as scene_lib
@@ -53,21 +54,24 @@ def configs(steps: int, use_clip: bool
 
 
 def main(argv):
-  if len(argv) > 1:
-    raise app.UsageError(f"unexpected arguments {argv[1:]}")
+  cli.no_arguments(argv)
   workdir = os.path.abspath(_WORKDIR.value)
   use_clip = bool(_CLIP_WEIGHTS.value)
   cfgs = configs(default_scene.TRAIN_STEPS, use_clip)
   scene_path = default_scene.ensure_default_scene()
   scene = scene_lib.load_scene(scene_path)
+  # Weights (if any) are read before anything is written.
+  scorers = {name: guidance.make_scorer(cfg.semantic, scene,
+                                        clip_weights=_CLIP_WEIGHTS.value)
+             for name, cfg in cfgs.items()}
   metrics = {}
   for name, cfg in cfgs.items():
-    scorer = guidance.make_scorer(cfg.semantic, scene,
-                                  clip_weights=_CLIP_WEIGHTS.value)
-    metrics[name] = run_lib.train_and_evaluate(
-        cfg, scene, os.path.join(workdir, name), scorer=scorer,
-        run_info={"scene": scene_path, "embedded_scene": True,
-                  "downscale": 1, "train_split": "clutter"})
+    out = os.path.join(workdir, name)
+    with cli.output_dir(out, keep=train.CHECKPOINT_NAME):
+      metrics[name] = run_lib.train_and_evaluate(
+          cfg, scene, out, scorer=scorers[name],
+          run_info={"scene": scene_path, "embedded_scene": True,
+                    "downscale": 1, "train_split": "clutter"})
   # The test view where guidance changes PSNR most, to show what it does.
   names = scene.test.names
   psnr = {k: np.array([m["test"]["per_image"][n]["psnr"] for n in names])
@@ -96,4 +100,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  app.run(main)
+  cli.run(main)
