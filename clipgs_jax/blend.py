@@ -264,7 +264,8 @@ def backward(grid, splats, tables, pix, color, depth, trans_final, n_contrib,
       include = chunk[:, None] * chunk_size + b < n_l             # [L, P]
       a = jnp.where(include, a, 0.0)
       w = a * trans
-      v = jnp.einsum("lc,lpc->lp", colors[:, b], gc_l) + depths[:, b, None] * gd_l
+      v = (jnp.einsum("lc,lpc->lp", colors[:, b], gc_l)
+           + depths[:, b, None] * gd_l)
       v_prefix = v_prefix + w * v
       behind = behind_l - v_prefix
       g_alpha = jnp.where(include, trans * v - behind / (1.0 - a), 0.0)

@@ -46,6 +46,7 @@ _CHECKPOINT = flags.DEFINE_string("checkpoint", "", "Optional checkpoint.npz "
 _TILE_BUDGET = flags.DEFINE_integer("tile_budget", 8192, "K.")
 _CHUNK = flags.DEFINE_integer("chunk_size", 32, "B.")
 _LANES = flags.DEFINE_integer("lanes", 0, "Blend lanes; 0 = automatic.")
+_TILE_SIZE = flags.DEFINE_integer("tile_size", 16, "Tile side, pixels.")
 _REPEATS = flags.DEFINE_integer("repeats", 3, "Timed runs (median).")
 _OPACITY_STD = 1.5    # logit spread of the stand-in: mostly 0.05-0.95
 _JITTER = 0.5         # resampled points move by this x their kNN scale
@@ -106,11 +107,13 @@ def bench(cfg, scene, batch, params, alive):
   proj, result["project_fwd"] = _timed(jax.jit(proj_fn), state.params)
   _, result["project_fwd_bwd"] = _timed(jax.jit(lambda p: jax.vjp(
       proj_fn, p)[1](proj)), state.params)
+  # pylint: disable=protected-access
   binned, result["bin_sort"] = _timed(
-      jax.jit(lambda q: rasterize._bin(q, grid)), proj)  # pylint: disable=protected-access
+      jax.jit(lambda q: rasterize._bin(q, grid)), proj)
   gauss, start, count, overflow, max_count = binned
   tables = (gauss, start, count)
-  pix, inside = rasterize._pixel_centers(grid, jnp.float32)  # pylint: disable=protected-access
+  pix, inside = rasterize._pixel_centers(grid, jnp.float32)
+  # pylint: enable=protected-access
   splats = (proj.means2d, proj.conics, proj.colors, proj.opacities,
             proj.depths)
   fwd = jax.jit(lambda s, tb: blend.forward(grid, s, tb, pix, inside, None))
@@ -141,7 +144,7 @@ def main(argv):
   scene = scene_lib.load_scene(_SCENE.value, downscale=_DOWNSCALE.value)
   cfg = config.Config(render=config.RenderConfig(
       tile_budget=_TILE_BUDGET.value, chunk_size=_CHUNK.value,
-      lanes=_LANES.value))
+      lanes=_LANES.value, tile_size=_TILE_SIZE.value))
   cfg = train.resolve(cfg, scene)
   batch = train.make_batch(scene.train)
   base = train.initial_state(cfg, scene)
