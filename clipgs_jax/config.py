@@ -7,19 +7,21 @@ import dataclasses
 class RenderConfig:
   """How the tile rasterizer projects, bins and blends.
 
-  Choosing `tile_budget`: it must exceed the largest number of Gaussians that
-  overlap one 16x16 tile, or the farthest ones in that tile are dropped (and
-  counted in `RenderOutput.num_overflow`, never silently). Render a typical
-  view once and read `max_tile_count`; then set the budget to the next power
-  of two above it. Memory and time do not scale with the budget: each tile
-  walks its depth-sorted list `chunk_size` entries at a time and stops when
-  its pixels saturate or its list ends. The intersection buffer holds
-  num_tiles * tile_budget entries (4 bytes each), which is what the budget
-  costs.
+  `tile_budget` sizes the intersection buffer: it holds num_tiles x
+  tile_budget (tile, Gaussian) pairs, 4 bytes each, i.e. K is the *mean*
+  list length a view may reach; one tile may hold any number of entries.
+  A view with more intersections drops the farthest ones and counts them in
+  `RenderOutput.num_overflow`, never silently. The sort itself runs on the
+  smallest of a ladder of buffers that holds the view's real count.
+  The blend's time follows the total list length, not the longest list:
+  `lanes` tiles are blended side by side, `chunk_size` entries per round,
+  each lane taking the next tile (longest first) when its tile ends.
   """
   near: float = 0.2            # near plane in scene units; closer is culled
-  tile_budget: int = 2048      # K: max depth-sorted Gaussians per tile
-  chunk_size: int = 32         # B: list entries blended per step per tile
+  tile_budget: int = 2048      # K: buffer entries per tile, on average
+  chunk_size: int = 32         # B: list entries blended per round per lane
+  lanes: int = 0               # tiles blended side by side; 0 = tiles / 4
+  tile_size: int = 16          # tile side in pixels
 
 
 @dataclasses.dataclass(frozen=True)

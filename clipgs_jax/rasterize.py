@@ -1,12 +1,10 @@
 """Tile rasterizer: bin splats into 16x16 tiles, depth-sort, alpha-blend.
 
-The blend is a `jax.custom_vjp` whose backward pass recomputes each chunk's
-alphas front to back instead of storing per-pixel per-Gaussian tensors, so
-memory is O(pixels x chunk_size). Projection (`project.py`) is plain JAX and
-differentiated by autodiff; it is O(N) and cheap.
+Binning and sorting live here; the blend (`blend.py`) is a `jax.custom_vjp`
+whose work follows each tile's own list. Projection (`project.py`) is plain
+JAX and differentiated by autodiff; it is O(N) and cheap.
 """
 
-import dataclasses
 import functools
 from typing import Any
 
@@ -15,17 +13,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from clipgs_jax import blend as blend_lib
 from clipgs_jax import camera as camera_lib
 from clipgs_jax import config as config_lib
 from clipgs_jax import gaussians
 from clipgs_jax import project as project_lib
 
-TILE = 16                      # tile side in pixels
-PIXELS_PER_TILE = TILE * TILE
-MAX_ALPHA = 0.99               # cap so 1 / (1 - alpha) stays <= 100
-# A pixel stops blending when its transmittance would fall below this; the
-# remaining light cannot change an 8-bit colour visibly (reference 3DGS).
-TRANSMITTANCE_THRESHOLD = 1e-4
+MAX_ALPHA = blend_lib.MAX_ALPHA
+TRANSMITTANCE_THRESHOLD = blend_lib.TRANSMITTANCE_THRESHOLD
 # Smallest intersection buffer tried before sorting; below this, sorting is
 # cheap enough that more lax.switch branches would only add compile time.
 _MIN_SORT_BUFFER = 1 << 15
@@ -44,9 +39,10 @@ class RenderOutput:
     contribution: float [C], sum over pixels of its blending weights.
     evidence: float [C], sum over pixels of its blending weights times the
       evidence map, from the same pass; None when no map was given.
-    num_overflow: int32 [], tile-list entries dropped because a tile held
-      more than `tile_budget` Gaussians (0 means the render is exact).
-    max_tile_count: int32 [], the longest tile list before the budget.
+    num_overflow: int32 [], tile-list entries dropped because the view's
+      intersections exceeded the buffer, num_tiles x `tile_budget` (0 means
+      the render is exact; one tile may hold any number of them).
+    max_tile_count: int32 [], the longest tile list.
   """
   image: Any
   alpha: Any
@@ -58,56 +54,32 @@ class RenderOutput:
   max_tile_count: Any
 
 
-@dataclasses.dataclass(frozen=True)
-class _Grid:
-  """Static tiling of one image size (hashable: a custom_vjp static arg)."""
-  width: int
-  height: int
-  tile_budget: int
-  chunk_size: int
-
-  @property
-  def tiles_x(self) -> int:
-    return -(-self.width // TILE)
-
-  @property
-  def tiles_y(self) -> int:
-    return -(-self.height // TILE)
-
-  @property
-  def num_tiles(self) -> int:
-    return self.tiles_x * self.tiles_y
-
-  @property
-  def num_rounds(self) -> int:
-    return -(-self.tile_budget // self.chunk_size)
-
-
-def _pixel_centers(grid: _Grid, dtype):
+def _pixel_centers(grid: blend_lib.Grid, dtype):
   """float [T, P, 2] pixel centres per tile and bool [T, P] inside-image."""
   ty, tx, py, px = np.meshgrid(np.arange(grid.tiles_y), np.arange(grid.tiles_x),
-                               np.arange(TILE), np.arange(TILE), indexing="ij")
-  x = (tx * TILE + px).reshape(grid.num_tiles, PIXELS_PER_TILE)
-  y = (ty * TILE + py).reshape(grid.num_tiles, PIXELS_PER_TILE)
+                               np.arange(grid.tile), np.arange(grid.tile),
+                               indexing="ij")
+  x = (tx * grid.tile + px).reshape(grid.num_tiles, grid.pixels_per_tile)
+  y = (ty * grid.tile + py).reshape(grid.num_tiles, grid.pixels_per_tile)
   inside = (x < grid.width) & (y < grid.height)
   centers = np.stack([x + 0.5, y + 0.5], -1).astype(dtype)
   return jnp.asarray(centers), jnp.asarray(inside)
 
 
-def _tile(x: jax.Array, grid: _Grid) -> jax.Array:
+def _tile(x: jax.Array, grid: blend_lib.Grid) -> jax.Array:
   """[H, W] image to the [T, P] tile layout (padding pixels get 0)."""
-  x = jnp.pad(x, ((0, grid.tiles_y * TILE - grid.height),
-                  (0, grid.tiles_x * TILE - grid.width)))
-  x = x.reshape(grid.tiles_y, TILE, grid.tiles_x, TILE)
-  return jnp.swapaxes(x, 1, 2).reshape(grid.num_tiles, PIXELS_PER_TILE)
+  x = jnp.pad(x, ((0, grid.tiles_y * grid.tile - grid.height),
+                  (0, grid.tiles_x * grid.tile - grid.width)))
+  x = x.reshape(grid.tiles_y, grid.tile, grid.tiles_x, grid.tile)
+  return jnp.swapaxes(x, 1, 2).reshape(grid.num_tiles, grid.pixels_per_tile)
 
 
-def _untile(x: jax.Array, grid: _Grid) -> jax.Array:
+def _untile(x: jax.Array, grid: blend_lib.Grid) -> jax.Array:
   """[T, P, ...] tile layout to a cropped [H, W, ...] image."""
   rest = x.shape[2:]
-  x = x.reshape((grid.tiles_y, grid.tiles_x, TILE, TILE) + rest)
+  x = x.reshape((grid.tiles_y, grid.tiles_x, grid.tile, grid.tile) + rest)
   x = jnp.swapaxes(x, 1, 2).reshape(
-      (grid.tiles_y * TILE, grid.tiles_x * TILE) + rest)
+      (grid.tiles_y * grid.tile, grid.tiles_x * grid.tile) + rest)
   return x[:grid.height, :grid.width]
 
 
@@ -116,27 +88,27 @@ def _cumsum(x: jax.Array) -> jax.Array:
   return jax.lax.associative_scan(jnp.add, x)
 
 
-def _bin(proj: project_lib.Projected, grid: _Grid):
+def _bin(proj: project_lib.Projected, grid: blend_lib.Grid):
   """Depth-sorted per-tile lists as one sorted array plus tile ranges.
 
   Returns:
     gauss: int32 [T * K], Gaussian ids grouped by tile, near to far.
     start: int32 [T], first entry of each tile in `gauss`.
-    count: int32 [T], entries of each tile, capped at the budget K.
-    num_overflow: int32 [], intersections dropped by the budget.
-    max_count: int32 [], longest tile list before the cap.
+    count: int32 [T], entries of each tile.
+    num_overflow: int32 [], intersections the buffer could not hold.
+    max_count: int32 [], longest tile list (exact even on overflow).
   """
   n = proj.depths.shape[0]
-  t, k = grid.num_tiles, grid.tile_budget
-  capacity = t * k
+  t = grid.num_tiles
+  capacity = t * grid.tile_budget
   rank_bits = max(1, int(np.ceil(np.log2(n))))
   tile_bits = int(np.ceil(np.log2(t + 1)))
   if rank_bits + tile_bits > 32:
     raise ValueError(
         f"{n} Gaussian slots and {t} tiles do not fit a 32-bit sort key; "
         "lower the capacity or render at a lower resolution.")
-  lo = jnp.floor((proj.means2d - proj.extents) / TILE)
-  hi = jnp.floor((proj.means2d + proj.extents) / TILE)
+  lo = jnp.floor((proj.means2d - proj.extents) / grid.tile)
+  hi = jnp.floor((proj.means2d + proj.extents) / grid.tile)
   limit = jnp.array([grid.tiles_x - 1, grid.tiles_y - 1], lo.dtype)
   # Clip in float before the int cast, so huge splats cannot overflow int32.
   lo_i = jnp.clip(lo, 0, limit).astype(jnp.int32)
@@ -193,215 +165,11 @@ def _bin(proj: project_lib.Projected, grid: _Grid):
   bounds = jnp.searchsorted(
       key, jnp.arange(t + 1, dtype=jnp.uint32) << rank_bits).astype(jnp.int32)
   start = bounds[:-1]
-  count = jnp.minimum(bounds[1:] - start, k)
-  # Dropped: entries past a tile's budget, and any the buffer could not hold.
+  count = bounds[1:] - start
+  # Dropped: the intersections past the buffer (the farthest Gaussians,
+  # since intersections are emitted in depth order).
   num_overflow = total - jnp.sum(count)
   return gauss, start, count, num_overflow, jnp.max(true_count)
-
-
-def _entries(r, splats, tables, chunk_size):
-  """Gaussian ids and attributes of list entries [r*B, (r+1)*B) per tile."""
-  gauss, start, count = tables
-  k = r * chunk_size + jnp.arange(chunk_size)
-  in_list = k[None, :] < count[:, None]                          # [T, B]
-  gid = gauss[jnp.clip(start[:, None] + k[None, :], 0, gauss.shape[0] - 1)]
-  return gid, in_list, tuple(x[gid] for x in splats)             # [T, B, ...]
-
-
-def _alpha(pix, mean, conic, opacity):
-  """Blend alpha of one entry per tile at every pixel of the tile.
-
-  Args:
-    pix: float [T, P, 2]; mean: [T, 2]; conic: [T, 3]; opacity: [T].
-  Returns:
-    alpha, raw = opacity * gauss, gauss = exp(-power), dx, dy, keep: [T, P].
-  """
-  dx = pix[..., 0] - mean[:, None, 0]
-  dy = pix[..., 1] - mean[:, None, 1]
-  ca, cb, cc = conic[:, None, 0], conic[:, None, 1], conic[:, None, 2]
-  power = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-  gauss = jnp.exp(-jnp.maximum(power, 0.0))
-  raw = opacity[:, None] * gauss
-  keep = (power >= 0) & (raw >= project_lib.ALPHA_THRESHOLD)
-  alpha = jnp.where(keep, jnp.minimum(raw, MAX_ALPHA), 0.0)
-  return alpha, raw, gauss, dx, dy, keep
-
-
-def _forward_init(splats, pix, pix_inside, emap):
-  """Initial forward carry; its evidence slot is None without a map."""
-  t, p = pix.shape[:2]
-  dtype = splats[0].dtype
-  carry = (jnp.int32(0), jnp.ones((t, p), dtype), jnp.zeros((t, p, 3), dtype),
-           jnp.zeros((t, p), dtype), jnp.zeros((t, p), jnp.int32),
-           ~pix_inside, jnp.zeros((splats[0].shape[0],), dtype))
-  return carry + (None if emap is None else jnp.zeros_like(carry[-1]),)
-
-
-def _forward_round(grid, splats, tables, pix, emap, carry):
-  """Blends list entries [r*B, (r+1)*B) of every tile into the carry.
-
-  The B entries are walked one at a time on [T, P] arrays, which stay in
-  cache (a [T, B, P] formulation was memory-bound at 400 MB per round), in a
-  fori_loop rather than unrolled (unrolling B = 32 took a minute to compile).
-  `emap` (float [T, P] or None) adds the map-weighted sums; with None the
-  traced program is the plain blend (a Python-level branch).
-  """
-  r, trans, color, depth, n_contrib, done, contrib, evidence = carry
-  gid, in_list, (means2d, conics, colors, opacities, depths) = _entries(
-      r, splats, tables, grid.chunk_size)
-
-  def entry(b, state):
-    trans, color, depth, n_contrib, done, per_entry, per_ev = state
-    alpha = _alpha(pix, means2d[:, b], conics[:, b], opacities[:, b])[0]
-    t_after = trans * (1.0 - alpha)
-    include = ((t_after >= TRANSMITTANCE_THRESHOLD) & ~done
-               & in_list[:, b, None])
-    w = jnp.where(include, alpha * trans, 0.0)                   # [T, P]
-    color = color + w[..., None] * colors[:, b, None, :]
-    depth = depth + w * depths[:, b, None]
-    trans = jnp.where(include, t_after, trans)
-    n_contrib = n_contrib + include
-    # Out of list or below the transmittance floor: this pixel is finished.
-    done = done | ~include
-    # Pixels outside the image start `done`, so their w is already 0.
-    per_entry = per_entry.at[:, b].set(jnp.sum(w, axis=1))
-    if emap is not None:
-      per_ev = per_ev.at[:, b].set(jnp.sum(w * emap, axis=1))
-    return trans, color, depth, n_contrib, done, per_entry, per_ev
-
-  zeros = jnp.zeros(in_list.shape, trans.dtype)
-  state = (trans, color, depth, n_contrib, done, zeros,
-           None if emap is None else zeros)
-  trans, color, depth, n_contrib, done, per_entry, per_ev = jax.lax.fori_loop(
-      0, grid.chunk_size, entry, state)
-  per_entry = jnp.where(in_list, per_entry, 0.0)
-  contrib = contrib.at[gid.reshape(-1)].add(per_entry.reshape(-1))
-  if emap is not None:
-    per_ev = jnp.where(in_list, per_ev, 0.0)
-    evidence = evidence.at[gid.reshape(-1)].add(per_ev.reshape(-1))
-  return r + 1, trans, color, depth, n_contrib, done, contrib, evidence
-
-
-def _blend_forward(grid, splats, tables, pix, pix_inside, emap):
-  count = tables[2]
-
-  def cond(carry):
-    r, done = carry[0], carry[5]
-    # A tile is active while its list has entries left and a pixel is open.
-    active = (r * grid.chunk_size < count) & ~jnp.all(done, axis=1)
-    return (r < grid.num_rounds) & jnp.any(active)
-
-  body = functools.partial(_forward_round, grid, splats, tables, pix, emap)
-  carry = jax.lax.while_loop(
-      cond, body, _forward_init(splats, pix, pix_inside, emap))
-  _, trans, color, depth, n_contrib, _, contrib, evidence = carry
-  return color, depth, trans, n_contrib, contrib, evidence
-
-
-def blend_autodiff(grid, splats, tables, pix, pix_inside, emap=None):
-  """The same blend as a fixed-length scan, for plain reverse-mode autodiff.
-
-  `while_loop` cannot be reverse-differentiated, so this runs every round
-  (no early exit) and autodiff stores every round's intermediates. It exists
-  to measure what the custom VJP saves (bench_rasterizer.py) and as a second
-  gradient check; training never uses it. `emap` (float [T, P] or None)
-  adds the evidence sums exactly as the custom-VJP blend does.
-  """
-  body = functools.partial(_forward_round, grid, splats, tables, pix, emap)
-  carry = jax.lax.scan(lambda c, _: (body(c), None),
-                       _forward_init(splats, pix, pix_inside, emap), None,
-                       length=grid.num_rounds)[0]
-  _, trans, color, depth, _, _, contrib, evidence = carry
-  return color, depth, trans, contrib, evidence
-
-
-@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
-def _blend(grid, means2d, conics, colors, opacities, depths, tables, pix,
-           pix_inside, emap):
-  splats = (means2d, conics, colors, opacities, depths)
-  color, depth, trans, _, contrib, evidence = _blend_forward(
-      grid, splats, tables, pix, pix_inside, emap)
-  return color, depth, trans, contrib, evidence
-
-
-def _blend_fwd(grid, means2d, conics, colors, opacities, depths, tables, pix,
-               pix_inside, emap):
-  splats = (means2d, conics, colors, opacities, depths)
-  color, depth, trans, n_contrib, contrib, evidence = _blend_forward(
-      grid, splats, tables, pix, pix_inside, emap)
-  residuals = (splats, tables, pix, color, depth, trans, n_contrib)
-  return (color, depth, trans, contrib, evidence), residuals
-
-
-def _blend_bwd(grid, residuals, cotangents):
-  splats, tables, pix, color, depth, trans_final, n_contrib = residuals
-  # Contribution and evidence are not differentiable.
-  g_color, g_depth, g_trans = cotangents[:3]
-  n = splats[0].shape[0]
-  dtype = splats[0].dtype
-  t, p = pix.shape[:2]
-  # Linearised loss L = sum_k w_k v_k + T_final g_T with v_k = c_k.gC + z_k gD
-  # per pixel. Walking front to back, the part of the first sum behind entry
-  # k is v_total minus the running prefix, so nothing is stored per entry.
-  v_total = jnp.einsum("tpc,tpc->tp", color, g_color) + depth * g_depth
-  tail = trans_final * g_trans
-
-  def body(carry):
-    r, trans, v_prefix, grads = carry
-    gid, in_list, (means2d, conics, colors, opacities, depths) = _entries(
-        r, splats, tables, grid.chunk_size)
-
-    def entry(b, state):
-      trans, v_prefix, rows = state
-      alpha, raw, gauss, dx, dy, keep = _alpha(
-          pix, means2d[:, b], conics[:, b], opacities[:, b])
-      include = r * grid.chunk_size + b < n_contrib               # [T, P]
-      alpha = jnp.where(include, alpha, 0.0)
-      w = alpha * trans
-      v = (jnp.einsum("tc,tpc->tp", colors[:, b], g_color)
-           + depths[:, b, None] * g_depth)
-      v_prefix = v_prefix + w * v
-      behind = v_total - v_prefix + tail
-      g_alpha = jnp.where(include, trans * v - behind / (1.0 - alpha), 0.0)
-      # alpha = min(0.99, o G), G = exp(-power): the cap has zero slope.
-      g_raw = jnp.where(keep & (raw < MAX_ALPHA) & include, g_alpha, 0.0)
-      g_power = -g_raw * raw
-      # power = a dx^2 / 2 + b dx dy + c dy^2 / 2 with dx = px - mean_x, so
-      # every splat gradient is a conic-weighted moment of g_power over the
-      # tile's pixels.
-      gx, gy = jnp.sum(g_power * dx, 1), jnp.sum(g_power * dy, 1)
-      ca, cb, cc = (conics[:, b, i] for i in range(3))
-      row = jnp.concatenate([
-          jnp.stack([-(ca * gx + cb * gy), -(cb * gx + cc * gy),
-                     0.5 * jnp.sum(g_power * dx * dx, 1),
-                     jnp.sum(g_power * dx * dy, 1),
-                     0.5 * jnp.sum(g_power * dy * dy, 1)], -1),
-          jnp.einsum("tp,tpc->tc", w, g_color),
-          jnp.stack([jnp.sum(g_raw * gauss, 1), jnp.sum(w * g_depth, 1)],
-                    -1)], -1)                                    # [T, 10]
-      return trans * (1.0 - alpha), v_prefix, rows.at[:, b].set(row)
-
-    rows = jnp.zeros(in_list.shape + (10,), dtype)
-    trans, v_prefix, rows = jax.lax.fori_loop(
-        0, grid.chunk_size, entry, (trans, v_prefix, rows))
-    rows = jnp.where(in_list[..., None], rows, 0.0)
-    grads = grads.at[gid.reshape(-1)].add(rows.reshape(-1, 10))
-    return r + 1, trans, v_prefix, grads
-
-  max_contrib = jnp.max(n_contrib)
-
-  def cond(carry):
-    return carry[0] * grid.chunk_size < max_contrib
-
-  init = (jnp.int32(0), jnp.ones((t, p), dtype), jnp.zeros((t, p), dtype),
-          jnp.zeros((n, 10), dtype))
-  grads = jax.lax.while_loop(cond, body, init)[3]
-  # Columns: mean (2), conic (3), colour (3), opacity, depth.
-  return (grads[:, 0:2], grads[:, 2:5], grads[:, 5:8], grads[:, 8],
-          grads[:, 9], None, None, None, None)
-
-
-_blend.defvjp(_blend_fwd, _blend_bwd)
 
 
 def _check_evidence_map(evidence_map, cam: camera_lib.Camera) -> None:
@@ -423,14 +191,19 @@ def rasterize(proj: project_lib.Projected, cam: camera_lib.Camera,
               evidence_map: jax.Array | None = None) -> RenderOutput:
   """Bins, sorts and blends projected splats into an image.
 
-  `custom_vjp=False` swaps in `blend_autodiff` (benchmarks and tests only).
+  `custom_vjp=False` swaps in `blend.blend_autodiff` (benchmarks and tests
+  only; it drops list entries past `tile_budget` per tile).
   `evidence_map` (float [H, W], values in [0, 1], no gradient flows into it)
   makes the same pass also return `RenderOutput.evidence`, per Gaussian the
   sum over pixels of blending weight times map value. Without it the traced
   program is the plain render and `evidence` is None.
   """
-  grid = _Grid(int(cam.width), int(cam.height), cfg.tile_budget,
-               cfg.chunk_size)
+  for name in ("tile_budget", "chunk_size", "tile_size"):
+    if getattr(cfg, name) < 1:
+      raise ValueError(f"RenderConfig.{name} must be >= 1, got "
+                       f"{getattr(cfg, name)}.")
+  grid = blend_lib.Grid(int(cam.width), int(cam.height), cfg.tile_budget,
+                        cfg.chunk_size, cfg.lanes, cfg.tile_size)
   dtype = proj.means2d.dtype
   pix, pix_inside = _pixel_centers(grid, dtype)
   gauss, start, count, num_overflow, max_count = _bin(proj, grid)
@@ -442,10 +215,10 @@ def rasterize(proj: project_lib.Projected, cam: camera_lib.Camera,
     emap = _tile(jax.lax.stop_gradient(jnp.asarray(evidence_map, dtype)),
                  grid)
   if custom_vjp:
-    color, depth, trans, contrib, evidence = _blend(
+    color, depth, trans, contrib, evidence = blend_lib.blend(
         grid, *splats, (gauss, start, count), pix, pix_inside, emap)
   else:
-    color, depth, trans, contrib, evidence = blend_autodiff(
+    color, depth, trans, contrib, evidence = blend_lib.blend_autodiff(
         grid, splats, (gauss, start, count), pix, pix_inside, emap)
   trans = _untile(trans, grid)
   alpha = 1.0 - trans
@@ -489,3 +262,65 @@ def render(params: gaussians.GaussianParams, alive: jax.Array,
                              sh_degree=sh_degree)
   return rasterize(proj, cam, jnp.asarray(background), cfg,
                    evidence_map=evidence_map)
+
+
+def blend_stats(proj: project_lib.Projected, cam: camera_lib.Camera,
+                cfg: config_lib.RenderConfig) -> dict[str, Any]:
+  """How much of the blend's work one view needs (host-side diagnostic).
+
+  Runs binning and both blend passes once (outside any jit) and counts, per
+  pass, the needed pixel evaluations (each tile: its list up to where its
+  last pixel finished, times its pixels) against the executed ones (rounds x
+  lanes x chunk x pixels), and the executed pixel-entry pairs whose alpha is
+  non-zero. `lockstep_*` are the same counts for a blend that runs every
+  tile in every round until the longest list ends (the layout this one
+  replaced). For benchmarks; never called in training.
+  """
+  grid = blend_lib.Grid(int(cam.width), int(cam.height), cfg.tile_budget,
+                        cfg.chunk_size, cfg.lanes, cfg.tile_size)
+  dtype = proj.means2d.dtype
+  pix, inside = _pixel_centers(grid, dtype)
+  gauss, start, count, _, _ = _bin(proj, grid)
+  splats = (proj.means2d, proj.conics, proj.colors, proj.opacities,
+            proj.depths)
+  color, depth, trans, n_contrib, _, _, rounds_fwd = blend_lib.forward(
+      grid, splats, (gauss, start, count), pix, inside, None)
+  _, rounds_bwd = blend_lib.backward(
+      grid, splats, (gauss, start, count), pix, color, depth, trans,
+      n_contrib, jnp.ones_like(color), jnp.ones_like(depth),
+      jnp.ones_like(trans))
+  count, n_contrib = np.asarray(count), np.asarray(n_contrib)
+  gauss, start = np.asarray(gauss), np.asarray(start)
+  p, b = grid.pixels_per_tile, grid.chunk_size
+  # The forward evaluates a tile's entries until its list ends or its last
+  # pixel finished (the entry that finishes a pixel is evaluated too).
+  fwd_need = np.minimum(count, n_contrib.max(1) + 1)
+  bwd_need = n_contrib.max(1)
+  means, conics, opac, pix = (np.asarray(x) for x in (
+      proj.means2d, proj.conics, proj.opacities, pix))
+  nonzero = 0
+  for t in range(grid.num_tiles):
+    gid = gauss[start[t]:start[t] + fwd_need[t]]
+    d = pix[t][:, None, :] - means[gid][None]                    # [P, E, 2]
+    c = conics[gid]
+    power = (0.5 * (c[:, 0] * d[..., 0] ** 2 + c[:, 2] * d[..., 1] ** 2)
+             + c[:, 1] * d[..., 0] * d[..., 1])
+    raw = opac[gid] * np.exp(-np.maximum(power, 0.0))
+    nonzero += int(np.sum((power >= 0)
+                          & (raw >= project_lib.ALPHA_THRESHOLD)))
+  slots = grid.num_lanes * b * p
+  executed_fwd = max(int(rounds_fwd) * slots, 1)
+  executed_bwd = max(int(rounds_bwd) * slots, 1)
+  lockstep_rounds = int(np.max(-(-fwd_need // b)))
+  lockstep = max(lockstep_rounds * grid.num_tiles * b * p, 1)
+  return dict(
+      num_tiles=grid.num_tiles, lanes=grid.num_lanes, tile_size=grid.tile,
+      intersections=int(count.sum()), mean_list=round(float(count.mean()), 1),
+      median_list=float(np.median(count)), max_list=int(count.max()),
+      rounds_fwd=int(rounds_fwd), rounds_bwd=int(rounds_bwd),
+      efficiency_fwd=round(float(fwd_need.sum()) * p / executed_fwd, 3),
+      efficiency_bwd=round(float(bwd_need.sum()) * p / executed_bwd, 3),
+      nonzero_alpha_share_fwd=round(nonzero / executed_fwd, 4),
+      lockstep_rounds=lockstep_rounds,
+      lockstep_efficiency_fwd=round(float(fwd_need.sum()) * p / lockstep, 3),
+      lockstep_nonzero_alpha_share_fwd=round(nonzero / lockstep, 4))

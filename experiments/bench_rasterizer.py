@@ -1,14 +1,17 @@
 """Times the tile rasterizer: custom VJP against plain autodiff of its forward.
 
 Prints one JSON line per (N, image size, variant): forward ms, forward +
-backward ms, backward / forward, XLA's peak buffer estimate for forward +
-backward, tile overflow and the longest tile list.
+backward ms (wall and CPU), compile seconds, backward / forward, XLA's peak
+buffer estimate for forward + backward, tile overflow, the longest tile list
+and (custom VJP) the blend's lockstep efficiency and non-zero-alpha share
+from `rasterize.blend_stats`.
 
   python experiments/bench_rasterizer.py
   python experiments/bench_rasterizer.py --num_gaussians=10000 --sizes=256x256
 """
 
 import json
+import os
 import time
 
 from absl import flags
@@ -35,6 +38,8 @@ _TILE_BUDGET = flags.DEFINE_integer(
     "tile_budget", 0, "K; 0 = the smallest power of two >= the scene's "
     "longest tile list (what BUILD_NOTES recommends), same for both variants.")
 _CHUNK = flags.DEFINE_integer("chunk_size", 32, "B.")
+_LANES = flags.DEFINE_integer("lanes", 0, "Blend lanes; 0 = automatic.")
+_TILE_SIZE = flags.DEFINE_integer("tile_size", 16, "Tile side, pixels.")
 _REPEATS = flags.DEFINE_integer("repeats", 5, "Timed runs (median).")
 _MAX_BYTES = flags.DEFINE_float(
     "max_gib", 12.0, "Do not run a variant whose compiled forward+backward "
@@ -66,13 +71,18 @@ def make_scene(n, width, height, r_lo, r_hi, seed=0):
 
 
 def _time(fn, *args):
+  """Compile s (first call), median wall ms and median CPU ms."""
+  t0 = time.perf_counter()
   jax.block_until_ready(fn(*args))
-  times = []
+  compile_s = time.perf_counter() - t0
+  wall, cpu = [], []
   for _ in range(_REPEATS.value):
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     jax.block_until_ready(fn(*args))
-    times.append(time.perf_counter() - t0)
-  return 1e3 * float(np.median(times))
+    wall.append(time.perf_counter() - t0)
+    cpu.append(time.process_time() - c0)
+  return (compile_s, 1e3 * float(np.median(wall)),
+          1e3 * float(np.median(cpu)))
 
 
 def _peak_bytes(fn, *args):
@@ -85,7 +95,8 @@ def _peak_bytes(fn, *args):
 
 def _budget(params, alive, cam):
   """Smallest power of two >= the longest tile list of this scene."""
-  probe = config.RenderConfig(tile_budget=1 << 15, chunk_size=_CHUNK.value)
+  probe = config.RenderConfig(tile_budget=1 << 15, chunk_size=_CHUNK.value,
+                              tile_size=_TILE_SIZE.value)
   proj = project.project(params, alive, cam, near=probe.near, sh_degree=0)
   longest = int(rasterize.rasterize(proj, cam, jnp.zeros(3),
                                     probe).max_tile_count)
@@ -96,7 +107,8 @@ def bench(n, width, height, variant):
   r_lo, r_hi = (float(r) for r in _RADIUS.value)
   params, alive, cam = make_scene(n, width, height, r_lo, r_hi)
   budget = _TILE_BUDGET.value or _budget(params, alive, cam)
-  cfg = config.RenderConfig(tile_budget=budget, chunk_size=_CHUNK.value)
+  cfg = config.RenderConfig(tile_budget=budget, chunk_size=_CHUNK.value,
+                            lanes=_LANES.value, tile_size=_TILE_SIZE.value)
   bg = jnp.zeros(3)
   custom = variant == "custom_vjp"
 
@@ -112,19 +124,29 @@ def bench(n, width, height, variant):
   result = dict(n=n, width=width, height=height, variant=variant,
                 tile_budget=budget, chunk_size=cfg.chunk_size,
                 backend=jax.default_backend())
-  peak = _peak_bytes(grad, params)
+  t0 = time.perf_counter()
+  peak = _peak_bytes(grad, params)        # compiles forward + backward
+  fb_compile = time.perf_counter() - t0
   result["peak_bytes_fwd_bwd"] = peak
   if peak is not None and peak > _MAX_BYTES.value * 2**30:
     result["skipped"] = f"needs {peak / 2**30:.1f} GiB > --max_gib"
     return result
   out = jax.jit(forward)(params)
-  fwd_ms = _time(fwd, params)
-  fb_ms = _time(grad, params)
+  fwd_compile, fwd_ms, fwd_cpu = _time(fwd, params)
+  _, fb_ms, fb_cpu = _time(grad, params)
   result.update(
       forward_ms=round(fwd_ms, 1), forward_backward_ms=round(fb_ms, 1),
+      forward_cpu_ms=round(fwd_cpu, 1),
+      forward_backward_cpu_ms=round(fb_cpu, 1),
+      compile_forward_s=round(fwd_compile, 2),
+      compile_forward_backward_s=round(fb_compile, 2),
       backward_over_forward=round((fb_ms - fwd_ms) / fwd_ms, 2),
       num_overflow=int(out.num_overflow),
-      max_tile_count=int(out.max_tile_count))
+      max_tile_count=int(out.max_tile_count),
+      load_average=os.getloadavg()[0])
+  if custom:
+    proj = project.project(params, alive, cam, near=cfg.near, sh_degree=0)
+    result.update(rasterize.blend_stats(proj, cam, cfg))
   return result
 
 
