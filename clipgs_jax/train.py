@@ -531,12 +531,14 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
                          jax.device_get(last_info).items()})
         _check_finite(step, values)
         if values.get("num_overflow", 0) > 0:
-          # Inexact render: some tile held more Gaussians than the budget.
+          # Inexact render: the view's tile/Gaussian intersections did not
+          # fit the buffer of tiles x tile_budget pairs.
           _log.warning(
-              "step %d: %d tile-list entries dropped (longest tile list %d "
-              "> render.tile_budget %d); raise RenderConfig.tile_budget",
-              step, int(values["num_overflow"]),
-              int(values["max_tile_count"]), cfg.render.tile_budget)
+              "step %d: %d tile-list entries dropped (the view's "
+              "intersections exceed tiles x render.tile_budget = %d per "
+              "tile; longest tile list %d); raise RenderConfig.tile_budget",
+              step, int(values["num_overflow"]), cfg.render.tile_budget,
+              int(values["max_tile_count"]))
         values["step"] = step
         log.append(values)
         if bar is not None:
