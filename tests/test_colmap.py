@@ -265,9 +265,11 @@ def test_bird_model():
 
 
 @needs_data
-def test_real_model_copy_with_missing_image(tmp_path):
+def test_real_model_copy_with_empty_images(tmp_path):
   shutil.copytree(DATA / "bird" / "sparse", tmp_path / "sparse")
   (tmp_path / "images").mkdir()
   with pytest.raises(FileNotFoundError) as e:
     colmap.load_model(str(tmp_path))
-  _one_line_error(e, tmp_path / "images" / "001.jpg")
+  # The empty folder is named, with the model's first image as an example
+  # (a single missing image is a row of tests/test_bad_inputs.py).
+  _one_line_error(e, tmp_path / "images", "is empty", "001.jpg")
