@@ -373,7 +373,8 @@ class WiredStepTest(absltest.TestCase):
                       progress=False)
     self.assertEqual(again.scores, result.scores)
     self.assertEqual(again.prune_events, result.prune_events)
-    self.assertNotIn("clipgs_jax.clip.scorer", sys.modules)
+    # That the oracle never imports CLIP is NoClipImportTest's check, in a
+    # fresh interpreter: other test files in this process import it.
 
   def _fully_cluttered_fit(self, **semantic_fields):
     # Every view cluttered and tau = 0: every scored Gaussian exceeds tau,
