@@ -91,7 +91,6 @@ def bench(cfg, scene, batch, params, alive):
   state = train.init_state(cfg, params, alive)
   cam = scene_lib.camera_at(batch.cameras, _VIEW.value)
   target = batch.images[_VIEW.value]
-  bg = jnp.zeros(3)
   rcfg = cfg.render
   grid = blend.Grid(int(cam.width), int(cam.height), rcfg.tile_budget,
                     rcfg.chunk_size, rcfg.lanes, rcfg.tile_size)

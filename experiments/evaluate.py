@@ -12,7 +12,6 @@ new and the stored numbers side by side.
 
 import json
 import os
-import sys
 
 from absl import app
 from absl import flags
@@ -53,7 +52,8 @@ def main(argv):
     params, alive = state.params, state.alive
   else:
     if not os.path.exists(ply_path):
-      sys.exit(f"evaluate: {ply_path} is missing; pass --source=checkpoint.")
+      raise FileNotFoundError(f"{ply_path} is missing; pass "
+                              "--source=checkpoint.")
     params, alive = ply.read_ply(ply_path)
   lpips_net = FLAGS.lpips_net or run.get("lpips_net", "alex")
   new = run_lib.test_metrics(params, alive, scene.test, cfg, lpips_net)

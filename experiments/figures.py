@@ -20,7 +20,6 @@ runs' downscale (run.json), the exact data they were evaluated on.
 
 import json
 import os
-import sys
 
 from absl import app
 from absl import flags
@@ -255,11 +254,8 @@ def main(argv):
   for b in FLAGS.benchmarks:
     if not os.path.isdir(b):
       raise app.UsageError(f"benchmark {b} is not a folder.")
-  try:
-    written = make_figures(FLAGS.benchmarks, FLAGS.workroot, FLAGS.out,
-                           FLAGS.views, FLAGS.downscale)
-  except ValueError as e:
-    sys.exit(str(e))
+  written = make_figures(FLAGS.benchmarks, FLAGS.workroot, FLAGS.out,
+                         FLAGS.views, FLAGS.downscale)
   print("\n".join(written))
 
 

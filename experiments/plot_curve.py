@@ -8,7 +8,6 @@ experiments/train.py); the y axis is the test MSE on a log scale,
 10^(-PSNR / 10), so lower is better and equal dB steps are equal distances.
 """
 
-import sys
 
 from absl import app
 from absl import flags
@@ -32,8 +31,8 @@ def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"unexpected arguments {argv[1:]}")
   if not FLAGS.curves or not FLAGS.out:
-    sys.exit("plot_curve: pass --curves=a/curve.json[,b/curve.json] and "
-             "--out=plot.png")
+    raise app.UsageError("pass --curves=a/curve.json[,b/curve.json] and "
+                         "--out=plot.png")
   plots.plot(FLAGS.curves, FLAGS.out, FLAGS.labels, FLAGS.x)
 
 
