@@ -235,11 +235,16 @@ def run_sweep(cd: ml_collections.ConfigDict, workdir: str, *,
     benchmarks = benchmarks or [None]
   cli.require(bool(benchmarks), "config.sweep.benchmarks", "",
               "is empty; pass --scene=BENCH[,BENCH...]")
-  names = [os.path.basename(b) if b else "" for b in benchmarks]
+  if kind == "demo":          # one scene; rows go to workdir/<row>
+    cli.require(len(benchmarks) == 1, "scene", sweep.benchmarks,
+                "names several scenes; the demo takes one")
+    names = [""]
+  else:
+    names = [os.path.basename(b) for b in benchmarks]
   cli.require(len(set(names)) == len(names), "scene", ",".join(names),
               "names two benchmarks of the same basename; rename one")
   rows = _names(sweep.rows)
-  plan = []    # (benchmark name, row, tau, Config, workdir or None)
+  plan = []    # (benchmark name, row, tau or None, Config)
   for bench, name in zip(benchmarks, names):
     for row in rows:
       extra = ({"semantic": {"scorer": "clip"}}
@@ -264,13 +269,14 @@ def run_sweep(cd: ml_collections.ConfigDict, workdir: str, *,
     metrics, error = run_row(cfg, folder, clip_weights=clip_weights,
                              run_info=run_info)
     results.append((name, row, tau, cfg, metrics, error))
-  out = sweep.get("out") or workdir
+  out = os.path.abspath(sweep.get("out") or workdir)
   settings = _settings(plan[0][3], clip_weights, run_info)
-  failed = [f"{n}/{r}" for n, r, _, _, _, e in results if e]
+  failed = [f"{n}/{r}".lstrip("/") for n, r, _, _, _, e in results if e]
   if kind == "demo":
-    if failed:
-      raise ValueError(f"demo: rows {', '.join(failed)} failed (see the "
-                       "log); fix the cause and rerun to resume")
+    errors = [e for *_, e in results if e]
+    if errors:
+      raise ValueError(f"demo: row {failed[0]} failed ({errors[0]}); fix "
+                       "the cause and rerun to resume")
     return _demo_outputs(workdir, {r: c for _, r, _, c, _, _ in results},
                          {r: m for _, r, _, _, m, _ in results},
                          bool(clip_weights))
