@@ -33,6 +33,7 @@ _CONFIG = cli.define_config_file(
     "config", DEFAULT_CONFIG,
     "Config file (configs/*.py); override any field as "
     "--config.train.steps=7000.")
+flags.declare_key_flag("config")     # listed by --helpshort
 _WORKDIR = flags.DEFINE_string("workdir", None, "Output folder (a sweep: "
                                "the root of its rows and table).")
 _SCENE = flags.DEFINE_string(
