@@ -57,15 +57,19 @@ def build(values: dict | ml_collections.ConfigDict) -> config_lib.Config:
           else config_lib.TrainConfig.steps)
   try:
     cfg = config_lib.from_config_dict(values, auto_steps=auto)
-    guidance.validate(cfg.semantic)
   except ValueError as e:
     raise app.UsageError(str(e)) from e
+  try:
+    guidance.validate(cfg.semantic)
+  except ValueError as e:
+    raise app.UsageError(f"--config.semantic: {e}") from e
   data, ev = cfg.data, cfg.eval
   cli.require(data.train_split in scene_lib.TRAIN_SPLITS,
               "config.data.train_split", data.train_split,
               f"is not one of {', '.join(scene_lib.TRAIN_SPLITS)}")
-  cli.require(ev.lpips_net in metrics_lib.LPIPS_NETS, "config.eval.lpips_net",
-              ev.lpips_net, f"is not one of {', '.join(metrics_lib.LPIPS_NETS)}")
+  nets = metrics_lib.LPIPS_NETS
+  cli.require(ev.lpips_net in nets, "config.eval.lpips_net", ev.lpips_net,
+              f"is not one of {', '.join(nets)}")
   cli.require_folder("scene", data.scene)
   return cfg
 

@@ -1,13 +1,11 @@
 """Prune-threshold sweep: rows, Otsu's threshold, the s_j histogram plot."""
 
-import matplotlib
-matplotlib.use("Agg")   # files only
-import matplotlib.pyplot as plt  # pylint: disable=g-import-not-at-top,wrong-import-position
-import numpy as np  # pylint: disable=g-import-not-at-top,wrong-import-position
+import numpy as np
 
-from clipgs_jax import config as config_lib  # pylint: disable=g-import-not-at-top,wrong-import-position
-from clipgs_jax import plots  # pylint: disable=g-import-not-at-top,wrong-import-position
-from clipgs_jax import table  # pylint: disable=g-import-not-at-top,wrong-import-position
+from clipgs_jax import config as config_lib
+from clipgs_jax import plots   # selects matplotlib's file-only backend
+from clipgs_jax import table
+import matplotlib.pyplot as plt  # pylint: disable=g-bad-import-order
 
 
 def otsu_threshold(histogram, edges) -> float | None:
