@@ -7,6 +7,7 @@ this process into workdir/<benchmark>/<row>/ and collected into a table
 Rows resume, and a row whose metrics.json has its train.steps is skipped.
 """
 
+import dataclasses
 import json
 import os
 from typing import Any
@@ -71,7 +72,11 @@ def build(values: dict | ml_collections.ConfigDict) -> config_lib.Config:
   cli.require(ev.lpips_net in nets, "config.eval.lpips_net", ev.lpips_net,
               f"is not one of {', '.join(nets)}")
   cli.require_folder("scene", data.scene)
-  return cfg
+  if data.scene is None:
+    return cfg
+  # An absolute path, so that --resume from another folder matches.
+  return dataclasses.replace(cfg, data=dataclasses.replace(
+      data, scene=os.path.abspath(data.scene)))
 
 
 def train_one(cfg: config_lib.Config, workdir: str, *, resume: bool = False,
@@ -267,27 +272,28 @@ def run_sweep(cd: ml_collections.ConfigDict, workdir: str, *,
   results = []
   for name, row, tau, cfg in plan:
     folder = os.path.join(workdir, name, row)
-    if cfg.semantic.scorer == "clip" and not clip_weights:
-      results.append((name, row, tau, cfg, None, None))
-      continue
-    metrics, error = run_row(cfg, folder, clip_weights=clip_weights,
-                             run_info=run_info)
-    results.append((name, row, tau, cfg, metrics, error))
+    metrics, error = None, None     # a clip row without weights: not run
+    if cfg.semantic.scorer != "clip" or clip_weights:
+      metrics, error = run_row(cfg, folder, clip_weights=clip_weights,
+                               run_info=run_info)
+    results.append(table.RowResult(name, row, tau, cfg, metrics, error,
+                                   folder))
   out = os.path.abspath(sweep.get("out") or workdir)
   settings = _settings(plan[0][3], clip_weights, run_info)
-  failed = [f"{n}/{r}".lstrip("/") for n, r, _, _, _, e in results if e]
+  failed = [r for r in results if r.error]
   if kind == "demo":
-    errors = [e for *_, e in results if e]
-    if errors:
-      raise ValueError(f"demo: row {failed[0]} failed ({errors[0]}); fix "
-                       "the cause and rerun to resume")
-    return _demo_outputs(workdir, {r: c for _, r, _, c, _, _ in results},
-                         {r: m for _, r, _, _, m, _ in results},
+    if failed:
+      raise ValueError(f"demo: row {failed[0].row} failed "
+                       f"({failed[0].error}); fix the cause and rerun to "
+                       "resume")
+    return _demo_outputs(workdir, {r.row: r.cfg for r in results},
+                         {r.row: r.metrics for r in results},
                          bool(clip_weights))
-  collected = _COLLECT[kind](results, settings, out, sweep)
+  collected = _COLLECT[kind](results, settings, out, sweep.to_dict())
   if failed:
-    raise ValueError(f"sweep: rows {', '.join(failed)} failed; the table "
-                     f"marks them, the log says why; rerun to resume")
+    names = ", ".join(f"{r.scene}/{r.row}" for r in failed)
+    raise ValueError(f"sweep: rows {names} failed; the table marks them, "
+                     "the log says why; rerun to resume")
   return collected
 
 
@@ -299,75 +305,8 @@ def _taus(text) -> list[float]:
                          "comma-separated") from e
 
 
-def _collect_table(results, settings, out, sweep) -> dict:
-  del sweep
-  rows = [table.collect_row(n, r, c, m, e) for n, r, _, c, m, e in results
-          if c.semantic.scorer != "clip" or m is not None or e is not None]
-  rows = table.add_deltas(rows)
-  table.write_outputs(out, "table", settings, rows,
-                      table.format_markdown(rows, settings))
-  return {"settings": settings, "rows": rows}
-
-
-def _by_benchmark(results):
-  grouped = {}
-  for result in results:
-    grouped.setdefault(result[0], []).append(result)
-  return grouped.items()
-
-
-def _psnr(metrics):
-  return ((metrics or {}).get("test") or {}).get("psnr")
-
-
-def _collect_ablate(results, settings, out, sweep) -> dict:
-  every = []
-  for name, group in _by_benchmark(results):
-    psnr = {r: _psnr(m) for _, r, _, _, m, _ in group}
-    rows = [table.ablation_row(r, sweep.descriptions.get(r, r), c, m, e,
-                               psnr.get(table.VANILLA),
-                               psnr.get(table.CLEAN))
-            for _, r, _, c, m, e in group]
-    s = dict(settings, benchmark=name)
-    table.write_outputs(os.path.join(out, name), "ablate", s, rows,
-                        table.format_ablation(rows, s))
-    every += rows
-  return {"settings": settings, "rows": every}
-
-
-def _collect_tau(results, settings, out, sweep) -> dict:
-  every = []
-  for name, group in _by_benchmark(results):
-    vanilla = next((m for _, r, _, _, m, _ in group if r == table.VANILLA),
-                   None)
-    guided = [g for g in group if g[2] is not None]
-    rows = [tau_sweep.sweep_row(t, c, m, e, _psnr(vanilla))
-            for _, _, t, c, m, e in guided]
-    folder = os.path.join(out, name)
-    events = {t: _read_events(os.path.join(folder, r))
-              for _, r, t, _, _, _ in guided}
-    s = dict(settings, benchmark=name, scorer=sweep.scorer,
-             vanilla_psnr=_psnr(vanilla))
-    s["otsu_tau_first_prune (computed, not run)"] = (
-        tau_sweep.first_prune_otsu(events))
-    table.write_outputs(folder, "calibrate_tau", s, rows,
-                        tau_sweep.format_markdown(rows, s))
-    tau_sweep.plot_histograms(events, os.path.join(folder,
-                                                   "s_j_histogram.png"))
-    every += rows
-  return {"settings": settings, "rows": every}
-
-
-def _read_events(workdir: str) -> dict | None:
-  try:
-    with open(os.path.join(workdir, run_lib.PRUNE_EVENTS_JSON)) as f:
-      return json.load(f)
-  except (OSError, ValueError):
-    return None
-
-
-_COLLECT = {"table": _collect_table, "ablate": _collect_ablate,
-            "tau_sweep": _collect_tau}
+_COLLECT = {"table": table.write_table, "ablate": table.write_ablation,
+            "tau_sweep": tau_sweep.write_sweep}
 
 
 def run(cd: ml_collections.ConfigDict, workdir: str, *,

@@ -4,6 +4,7 @@ import datetime
 import math
 import os
 import platform
+from typing import NamedTuple
 
 from clipgs_jax import checkpoint
 from clipgs_jax import config as config_lib
@@ -13,6 +14,18 @@ from clipgs_jax import run as run_lib
 VANILLA, CLEAN = "vanilla", "clean"
 # Why an ablation row without CLIP weights did not run.
 NEEDS_CLIP = "needs --clip_weights (the oracle ignores prompts)"
+
+
+class RowResult(NamedTuple):
+  """One row of a sweep after it ran (or was skipped)."""
+  scene: str                # the benchmark's name ("" for the demo)
+  row: str                  # the row's name (configs/*.py)
+  tau: float | None         # tau sweeps: the row's tau
+  cfg: config_lib.Config    # the row's config
+  metrics: dict | None      # metrics.json; None: failed or not run
+  error: str | None         # the failure's one line; None with metrics None:
+  #                           not run (a clip row without weights)
+  workdir: str              # the row's run folder
 
 
 def row_label(cfg: config_lib.Config) -> str:
@@ -222,3 +235,46 @@ def write_outputs(folder: str, stem: str, settings: dict, rows: list[dict],
     with open(tmp, "w") as f:
       f.write(text)
   checkpoint.atomic_write(os.path.join(folder, stem + ".md"), write, ".md")
+
+
+def by_scene(results: list[RowResult]) -> dict[str, list[RowResult]]:
+  """The results grouped by benchmark, in order."""
+  grouped = {}
+  for result in results:
+    grouped.setdefault(result.scene, []).append(result)
+  return grouped
+
+
+def test_psnr(metrics: dict | None) -> float | None:
+  """metrics.json's test PSNR, None when there is none."""
+  return ((metrics or {}).get("test") or {}).get("psnr")
+
+
+def write_table(results: list[RowResult], settings: dict, out: str,
+                sweep: dict) -> dict:
+  """table.md / table.json in `out`; clip rows that did not run are left
+  out. Returns table.json's dict."""
+  del sweep
+  rows = [collect_row(r.scene, r.row, r.cfg, r.metrics, r.error)
+          for r in results if r.metrics is not None or r.error is not None]
+  rows = add_deltas(rows)
+  write_outputs(out, "table", settings, rows,
+                format_markdown(rows, settings))
+  return {"settings": settings, "rows": rows}
+
+
+def write_ablation(results: list[RowResult], settings: dict, out: str,
+                   sweep: dict) -> dict:
+  """out/<benchmark>/ablate.md / .json; sweep["descriptions"] names the
+  rows. Returns {"settings", "rows"} over every benchmark."""
+  every = []
+  for name, group in by_scene(results).items():
+    psnr = {r.row: test_psnr(r.metrics) for r in group}
+    rows = [ablation_row(r.row, sweep["descriptions"].get(r.row, r.row),
+                         r.cfg, r.metrics, r.error, psnr.get(VANILLA),
+                         psnr.get(CLEAN)) for r in group]
+    s = dict(settings, benchmark=name)
+    write_outputs(os.path.join(out, name), "ablate", s, rows,
+                  format_ablation(rows, s))
+    every += rows
+  return {"settings": settings, "rows": every}

@@ -1,9 +1,13 @@
 """Prune-threshold sweep: rows, Otsu's threshold, the s_j histogram plot."""
 
+import json
+import os
+
 import numpy as np
 
 from clipgs_jax import config as config_lib
 from clipgs_jax import plots   # selects matplotlib's file-only backend
+from clipgs_jax import run as run_lib
 from clipgs_jax import table
 import matplotlib.pyplot as plt  # pylint: disable=g-bad-import-order
 
@@ -133,3 +137,36 @@ def plot_histograms(events_by_tau: dict[float, dict | None],
   ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.18),
             ncol=2)
   plots.save_figure(fig, out_path)
+
+
+def _read_events(workdir: str) -> dict | None:
+  try:
+    with open(os.path.join(workdir, run_lib.PRUNE_EVENTS_JSON)) as f:
+      return json.load(f)
+  except (OSError, ValueError):
+    return None
+
+
+def write_sweep(results: list[table.RowResult], settings: dict, out: str,
+                sweep: dict) -> dict:
+  """out/<benchmark>/calibrate_tau.md / .json and s_j_histogram.png from
+  the vanilla row and one row per tau (their prune_events.json are read
+  from the rows' folders). Returns {"settings", "rows"}."""
+  every = []
+  for name, group in table.by_scene(results).items():
+    vanilla = next((r.metrics for r in group if r.row == table.VANILLA),
+                   None)
+    vanilla_psnr = table.test_psnr(vanilla)
+    guided = [r for r in group if r.tau is not None]
+    rows = [sweep_row(r.tau, r.cfg, r.metrics, r.error, vanilla_psnr)
+            for r in guided]
+    folder = os.path.join(out, name)
+    events = {r.tau: _read_events(r.workdir) for r in guided}
+    s = dict(settings, benchmark=name, scorer=sweep["scorer"],
+             vanilla_psnr=vanilla_psnr)
+    s["otsu_tau_first_prune (computed, not run)"] = first_prune_otsu(events)
+    table.write_outputs(folder, "calibrate_tau", s, rows,
+                        format_markdown(rows, s))
+    plot_histograms(events, os.path.join(folder, "s_j_histogram.png"))
+    every += rows
+  return {"settings": settings, "rows": every}
