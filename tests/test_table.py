@@ -150,6 +150,23 @@ class EndToEndTest(absltest.TestCase):
     self.assertEqual([r["psnr"] for r in again["rows"]],
                      [r["psnr"] for r in rows])
 
+  def test_demo_writes_the_comparison(self):
+    cd = config.load_file(os.path.join(config.CONFIGS_DIR, "demo.py"))
+    smoke = config.load_file(os.path.join(config.CONFIGS_DIR, "smoke.py"))
+    cd.gaussians.update(smoke.gaussians)
+    cd.train.steps = 10
+    root = self.create_tempdir().full_path
+    summary = sweep.run(cd, root)
+    self.assertEqual(sorted(os.listdir(root)),
+                     ["comparison.json", "comparison.png", "guided",
+                      "vanilla"])
+    self.assertIn("ORACLE-PIXEL", summary["guided"]["label"])
+    self.assertEqual(summary["vanilla"]["label"], "vanilla 3DGS")
+    with open(os.path.join(root, "guided", "config.json")) as f:
+      guided = json.load(f)
+    self.assertEqual(guided["train"]["checkpoint_every"], 10)
+    self.assertTrue(guided["semantic"]["loss_masking"])
+
 
 if __name__ == "__main__":
   absltest.main()
