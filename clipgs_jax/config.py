@@ -224,7 +224,7 @@ def _field_value(default, value, key: str):
   """`value` in the type of the field whose default is `default`."""
   if isinstance(default, tuple):
     if isinstance(value, str):
-      # "a,b" from a command line; () from an empty string.
+      # "a,b" in a config file or dict; "" is ().
       value = [v for v in value.split(",") if v]
     return tuple(value)
   if isinstance(default, bool) or default is None:
@@ -232,7 +232,7 @@ def _field_value(default, value, key: str):
   if isinstance(default, float) and isinstance(value, int):
     return float(value)
   if not isinstance(value, type(default)):
-    raise ValueError(f"config: {key}={value!r} must be a "
+    raise ValueError(f"config: {key}={value!r} must be of type "
                      f"{type(default).__name__} (the default is {default!r}).")
   return value
 

@@ -20,7 +20,7 @@ from clipgs_jax.data import default_scene
 # Loss masking on: measured on this scene in BUILD_NOTES ("Localized
 # evidence"); without it pruned ghosts regrow from the photometric loss.
 LOSS_MASKING = True
-CURVE_POINTS = 10
+CURVE_POINTS = 10     # the old demo's eval_every = steps // 10
 
 
 def get_config():

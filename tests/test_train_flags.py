@@ -63,7 +63,7 @@ class ConfigFilesTest(absltest.TestCase):
     self.assertEqual(config.from_dict(config.to_dict(cfg)), cfg)
     with self.assertRaisesRegex(ValueError, "unknown key densify.evry"):
       config.from_config_dict({"densify": {"evry": 3}})
-    with self.assertRaisesRegex(ValueError, "train.seed='0' must be a int"):
+    with self.assertRaisesRegex(ValueError, "train.seed='0' must be of type int"):
       config.from_config_dict({"train": {"seed": "0"}})
     with self.assertRaisesRegex(FileNotFoundError, "does not exist"):
       config.load_file("/nonexistent/config.py")
