@@ -11,6 +11,7 @@ from typing import Any, NoReturn
 
 from absl import app
 from absl import flags
+from ml_collections import config_flags
 
 # Exit status of a run stopped by bad input (a file, a value, the disk).
 EXIT_ERROR = 1
@@ -196,3 +197,20 @@ def output_dir(path: str, keep: str | None = None) -> Iterator[str]:
           else:
             os.remove(entry)
     raise
+
+
+def define_config_file(name: str, default: str, help_text: str):
+  """config_flags.DEFINE_config_file, with a bad override as one line.
+
+  ml_collections reads the --NAME.FIELD=VALUE overrides while the flag is
+  defined (at import), so an unknown field fails there: it exits with
+  EXIT_USAGE and one line naming the field, like any other flag error.
+  """
+  try:
+    return config_flags.DEFINE_config_file(name, default, help_text,
+                                           lock_config=True)
+  except (AttributeError, KeyError, TypeError, ValueError) as e:
+    text = str(e).replace("\\n", " ").replace("\\'", "").strip("'\"")
+    report(app.UsageError(f"--{name}: no such field or a bad override "
+                          f"({' '.join(text.split())}); the fields are in "
+                          f"{default}"), EXIT_USAGE)

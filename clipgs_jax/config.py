@@ -1,6 +1,12 @@
 """Frozen configuration dataclasses with the paper's and 3DGS's defaults."""
 
 import dataclasses
+import importlib.util
+import os
+import types
+import typing
+
+import ml_collections
 
 
 @dataclasses.dataclass(frozen=True)
@@ -164,6 +170,22 @@ class SemanticConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class DataConfig:
+  """Which scene a run reads, and how."""
+  scene: str | None = None     # scene folder; None = the embedded scene
+  downscale: int = 1           # image downscale factor (1: full size)
+  train_split: str = "clutter"  # RobustNeRF: clutter views or clean twins
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+  """How a finished run is measured."""
+  lpips_net: str = "alex"      # LPIPS backbone of the test metrics
+  curve_points: int = 20       # test-PSNR points along the run (curve.json);
+  #   sets train.eval_every = steps // curve_points (0: keep eval_every)
+
+
+@dataclasses.dataclass(frozen=True)
 class Config:
   """Everything a run needs; `scene_extent` is filled in from the scene."""
   gaussians: GaussiansConfig = GaussiansConfig()  # capacity, initialisation
@@ -172,37 +194,9 @@ class Config:
   train: TrainConfig = TrainConfig()      # loop, loss, logging
   render: RenderConfig = RenderConfig()   # rasterizer settings
   semantic: SemanticConfig = SemanticConfig()  # CLIP-GS guidance (off)
+  data: DataConfig = DataConfig()         # scene, downscale, split
+  eval: EvalConfig = EvalConfig()         # test metrics, curve
   scene_extent: float = 0.0    # camera-centre radius x 1.1; 0 = from scene
-
-
-PRESETS = ("default", "smoke")
-
-
-def preset(name: str) -> Config:
-  """Named configurations.
-
-  "default": the 3DGS paper values above (30k steps).
-  "smoke": a small capacity (2x the points, at most 16k) and 60 steps that
-  run densification (with capacity growth), pruning, the SH raise,
-  evaluation and checkpoints; for CI.
-  """
-  if name == "default":
-    return Config()
-  if name == "smoke":
-    return Config(
-        gaussians=GaussiansConfig(capacity=0, min_capacity=256,
-                                  max_capacity=16384, sh_degree=1,
-                                  random_init_points=500),
-        # Densify at 20 and 30, SH degree 1 from 20. No opacity reset: it
-        # needs thousands of steps to recover from (tests/test_densify.py
-        # and tests/test_train.py cover it), and a CI run should show the
-        # test PSNR rising.
-        densify=DensifyConfig(start=10, stop=35, every=10,
-                              opacity_reset_every=0, sh_degree_every=20),
-        train=TrainConfig(steps=60, log_every=10, eval_every=20,
-                          checkpoint_every=30))
-  raise ValueError(f"config.preset: unknown preset {name!r}; choose one of "
-                   f"{', '.join(PRESETS)}.")
 
 
 def to_dict(cfg: Config) -> dict:
@@ -212,19 +206,148 @@ def to_dict(cfg: Config) -> dict:
 
 def from_dict(d: dict) -> Config:
   """Inverse of `to_dict`; unknown keys raise (no silent typos)."""
-  def build(cls, values):
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = set(values) - set(fields)
-    if unknown:
-      raise ValueError(f"config: unknown {cls.__name__} keys "
-                       f"{sorted(unknown)}.")
-    kwargs = {}
-    for name, value in values.items():
-      default = getattr(cls(), name)
-      if dataclasses.is_dataclass(default):
-        value = build(type(default), value)
-      elif isinstance(default, tuple):
-        value = tuple(value)
-      kwargs[name] = value
-    return cls(**kwargs)
-  return build(Config, d)
+  return _build(Config, d, "")
+
+
+# The checkout's config files (configs/ next to the package), found when
+# the package is imported from the checkout (python -m pytest, PYTHONPATH)
+# or installed editable; scripts pass config files by path.
+CONFIGS_DIR = os.path.join(os.path.dirname(os.path.dirname(
+    os.path.abspath(__file__))), "configs")
+# ConfigDict keys that the builder consumes instead of storing:
+# semantic.scale_schedule scales the paper's semantic schedule to
+# train.steps (SemanticConfig.scaled_to), for short runs.
+SCALE_SCHEDULE = "scale_schedule"
+
+
+def _field_value(default, value, key: str):
+  """`value` in the type of the field whose default is `default`."""
+  if isinstance(default, tuple):
+    if isinstance(value, str):
+      # "a,b" in a config file or dict; "" is ().
+      value = [v for v in value.split(",") if v]
+    return tuple(value)
+  if isinstance(default, bool) or default is None:
+    return value
+  if isinstance(default, float) and isinstance(value, int):
+    return float(value)
+  if not isinstance(value, type(default)):
+    raise ValueError(f"config: {key}={value!r} must be of type "
+                     f"{type(default).__name__} (the default is {default!r}).")
+  return value
+
+
+def _optional_str(cls, name: str) -> bool:
+  hint = typing.get_type_hints(cls)[name]
+  return isinstance(hint, types.UnionType) and str in hint.__args__
+
+
+def _build(cls, values, prefix: str):
+  """cls(**values) with nested dataclasses; unknown keys raise, by name."""
+  fields = {f.name for f in dataclasses.fields(cls)}
+  unknown = sorted(set(values) - fields)
+  if unknown:
+    raise ValueError(f"config: unknown key {prefix}{unknown[0]} (a "
+                     f"{cls.__name__} has {', '.join(sorted(fields))}).")
+  kwargs = {}
+  for name, value in values.items():
+    default = getattr(cls(), name)
+    key = prefix + name
+    if dataclasses.is_dataclass(default):
+      if not isinstance(value, dict):
+        raise ValueError(f"config: {key} must be a section, got {value!r}.")
+      value = _build(type(default), value, key + ".")
+    elif value is None and not _optional_str(cls, name):
+      raise ValueError(f"config: {key} is not set; give it a value.")
+    elif value is not None:
+      value = _field_value(default, value, key)
+    kwargs[name] = value
+  return cls(**kwargs)
+
+
+def _positive(ok: bool, key: str, value, fix: str) -> None:
+  if not ok:
+    raise ValueError(f"--config.{key}={value} {fix}")
+
+
+def from_config_dict(cd: ml_collections.ConfigDict, *,
+                     auto_steps: int = TrainConfig.steps) -> Config:
+  """The frozen Config that a config file (ConfigDict) describes.
+
+  Every key must be a Config field (unknown keys raise, named), except
+  semantic.scale_schedule (see SCALE_SCHEDULE). train.steps None means
+  `auto_steps`; eval.curve_points > 0 sets train.eval_every. Values are
+  checked here, before any scene or weights are read.
+
+  Args:
+    cd: the ConfigDict (configs/*.py get_config(), with overrides).
+    auto_steps: int, the steps of a config whose train.steps is None
+      (the runner passes default_scene.TRAIN_STEPS for the embedded scene).
+  Returns:
+    Config.
+  """
+  values = cd.to_dict() if isinstance(cd, ml_collections.ConfigDict) else (
+      dict(cd))
+  sem = dict(values.get("semantic", {}))
+  scale = bool(sem.pop(SCALE_SCHEDULE, False))
+  train = dict(values.get("train", {}))
+  if train.get("steps", 0) is None:
+    train["steps"] = auto_steps
+  cfg = _build(Config, dict(values, semantic=sem, train=train), "")
+  t = cfg.train
+  _positive(t.steps > 0, "train.steps", t.steps, "must be positive")
+  _positive(t.checkpoint_every >= 0, "train.checkpoint_every",
+            t.checkpoint_every, "must be >= 0 (0: only at the end)")
+  _positive(cfg.render.tile_budget > 0, "render.tile_budget",
+            cfg.render.tile_budget, "must be positive; raise it when the "
+            "log warns that tile-list entries were dropped")
+  _positive(cfg.data.downscale >= 1, "data.downscale", cfg.data.downscale,
+            "must be a positive integer (1: full size)")
+  points = cfg.eval.curve_points
+  _positive(points >= 0, "eval.curve_points", points,
+            "must be >= 0 (0: keep train.eval_every)")
+  if points > 0:
+    t = dataclasses.replace(t, eval_every=max(1, t.steps // points))
+  sem = cfg.semantic.scaled_to(t.steps) if scale else cfg.semantic
+  return dataclasses.replace(cfg, train=t, semantic=sem)
+
+
+def to_config_dict(cfg: Config) -> ml_collections.ConfigDict:
+  """A ConfigDict of `cfg` with every field, for config files to edit.
+
+  data.scene is a string placeholder (None: the embedded scene), so that a
+  command line can set it; semantic.scale_schedule starts False.
+  """
+  cd = ml_collections.ConfigDict(to_dict(cfg))
+  cd.data.scene = ml_collections.config_dict.placeholder(str)
+  if cfg.data.scene is not None:
+    cd.data.scene = cfg.data.scene
+  cd.semantic[SCALE_SCHEDULE] = False
+  return cd
+
+
+def load_file(path: str) -> ml_collections.ConfigDict:
+  """get_config() of the config file at `path` (as --config=path loads it).
+
+  Raises:
+    FileNotFoundError: no such file.
+    ValueError: the file has no get_config().
+  """
+  path = os.fspath(path)
+  if not os.path.isfile(path):
+    raise FileNotFoundError(f"config file {path} does not exist; pass a "
+                            f"file such as {CONFIGS_DIR}/default.py")
+  name = "clipgs_config_" + os.path.splitext(os.path.basename(path))[0]
+  spec = importlib.util.spec_from_file_location(name, path)
+  module = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(module)
+  if not hasattr(module, "get_config"):
+    raise ValueError(f"config file {path} defines no get_config(); add one "
+                     "that returns an ml_collections.ConfigDict")
+  return module.get_config()
+
+
+def named(name: str) -> Config:
+  """The Config of the checkout's configs/<name>.py, e.g. named("smoke")
+  (one run's config; a config with train.steps None gets 30k steps)."""
+  return from_config_dict(load_file(os.path.join(CONFIGS_DIR, name + ".py")))

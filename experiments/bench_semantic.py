@@ -56,7 +56,7 @@ def main(argv):
   del argv
   path = _SCENE.value or default_scene.ensure_default_scene()
   scene = scene_lib.load_scene(path, downscale=_DOWNSCALE.value)
-  base = config_lib.preset("default")
+  base = config_lib.Config()
   base = dataclasses.replace(base, render=dataclasses.replace(
       base.render, tile_budget=_TILE_BUDGET.value))
   base = train.resolve(base, scene)

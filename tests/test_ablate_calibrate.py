@@ -1,16 +1,15 @@
-"""experiments/ablate.py and calibrate_tau.py: rows, flags, Otsu, plots."""
+"""configs/ablate.py and tau_sweep.py: rows, Otsu, Markdown, the plot."""
 
 import os
-import pathlib
-import sys
+from unittest import mock
 
 from absl.testing import absltest
 import numpy as np
 
-_REPO = pathlib.Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(_REPO / "experiments"))
-import ablate  # pylint: disable=g-import-not-at-top,wrong-import-position
-import calibrate_tau  # pylint: disable=g-import-not-at-top,wrong-import-position
+from clipgs_jax import config
+from clipgs_jax import sweep
+from clipgs_jax import table
+from clipgs_jax import tau_sweep
 
 
 def _metrics(psnr, *, alive=700, by_score=200, by_rule=100):
@@ -24,6 +23,10 @@ def _metrics(psnr, *, alive=700, by_score=200, by_rule=100):
                        "num_pruned_visibility": by_rule}}
 
 
+def _cd(name):
+  return config.load_file(os.path.join(config.CONFIGS_DIR, name + ".py"))
+
+
 class CalibrateTest(absltest.TestCase):
 
   def test_otsu_splits_two_modes(self):
@@ -31,28 +34,31 @@ class CalibrateTest(absltest.TestCase):
     hist = np.zeros(50)
     hist[8:12] = 100.0          # static mode around 0.01
     hist[40:44] = 20.0          # transient mode around 0.042
-    tau = calibrate_tau.otsu_threshold(hist, edges)
+    tau = tau_sweep.otsu_threshold(hist, edges)
     # Any edge in the empty gap [0.012, 0.040] separates; the middle one.
     self.assertAlmostEqual(tau, 0.026, delta=0.0015)
 
   def test_otsu_degenerate(self):
     edges = np.linspace(0.0, 1.0, 5)
-    self.assertIsNone(calibrate_tau.otsu_threshold(np.zeros(4), edges))
-    self.assertIsNone(calibrate_tau.otsu_threshold([0, 5, 0, 0], edges))
+    self.assertIsNone(tau_sweep.otsu_threshold(np.zeros(4), edges))
+    self.assertIsNone(tau_sweep.otsu_threshold([0, 5, 0, 0], edges))
 
   def test_sweep_row_fractions(self):
-    r = calibrate_tau.sweep_row(0.02, _metrics(21.0), None, 20.0)
+    cfg = sweep.row_config(_cd("tau_sweep"), "oracle",
+                           semantic={"tau": 0.02})
+    self.assertEqual(cfg.semantic.tau, 0.02)
+    r = tau_sweep.sweep_row(0.02, cfg, _metrics(21.0), None, 20.0)
     self.assertAlmostEqual(r["delta_psnr"], 1.0)
     self.assertAlmostEqual(r["fraction_pruned"], 0.3)
     self.assertAlmostEqual(r["fraction_pruned_by_score"], 0.2)
     self.assertAlmostEqual(r["fraction_pruned_by_rule"], 0.1)
-    failed = calibrate_tau.sweep_row(0.3, None, "exit code 1", 20.0)
+    failed = tau_sweep.sweep_row(0.3, cfg, None, "error: disk full", 20.0)
     self.assertEqual(failed["status"], "failed")
-    text = calibrate_tau.format_markdown([r, failed], {"steps": 30})
+    text = tau_sweep.format_markdown([r, failed], {"steps": 30})
     self.assertIn("| 0.02 | 21.00 | +1.00 |", text)
-    self.assertIn("FAILED (exit code 1)", text)
+    self.assertIn("FAILED (error: disk full)", text)
 
-  def test_histogram_plot(self):
+  def test_histogram_plot_and_otsu_of_first_prune(self):
     edges = np.linspace(0.0, 0.05, 51).tolist()
     event = lambda step, peak: {"step": step, "histogram": np.eye(50)[
         peak].tolist()}
@@ -60,41 +66,94 @@ class CalibrateTest(absltest.TestCase):
                      "events": [event(50, 10), event(90, 12)]},
               0.3: {"histogram_edges": edges, "events": [event(50, 10)]}}
     out = os.path.join(self.create_tempdir().full_path, "h.png")
-    calibrate_tau.plot_histograms(events, out)
+    tau_sweep.plot_histograms(events, out)
     self.assertGreater(os.path.getsize(out), 1000)
+    self.assertIsNone(tau_sweep.first_prune_otsu(events))   # one bin
     with self.assertRaisesRegex(ValueError, "no run has a prune event"):
-      calibrate_tau.plot_histograms({0.02: None}, out)
+      tau_sweep.plot_histograms({0.02: None}, out)
+
+  def test_sweep_plans_one_run_per_tau(self):
+    cd = _cd("tau_sweep")
+    cd.sweep.taus = "0.3,0.01"
+    root = self.create_tempdir().full_path
+    bench = self.create_tempdir("bench_a").full_path
+    cd.sweep.benchmarks = bench
+    ran = {}
+
+    def fake_row(cfg, workdir, **kwargs):
+      del kwargs
+      ran[os.path.relpath(workdir, root)] = cfg
+      return _metrics(20.0 + cfg.semantic.tau), None
+    with mock.patch.object(sweep, "run_row", fake_row), \
+        mock.patch.object(tau_sweep, "plot_histograms"):
+      out = sweep.run(cd, root)
+    self.assertEqual(sorted(ran), ["bench_a/oracle_tau0.01",
+                                   "bench_a/oracle_tau0.3",
+                                   "bench_a/vanilla"])
+    self.assertEqual(ran["bench_a/oracle_tau0.3"].semantic.tau, 0.3)
+    self.assertEqual(ran["bench_a/vanilla"].semantic.scorer, "off")
+    self.assertEqual([r["tau"] for r in out["rows"]], [0.3, 0.01])
+    self.assertTrue(os.path.exists(os.path.join(root, "bench_a",
+                                                "calibrate_tau.md")))
 
 
 class AblateTest(absltest.TestCase):
 
-  def test_row_flags(self):
-    kw = dict(tau=0.03, weighting="contribution", clip_weights=None)
-    reg = ablate.row_flags("oracle_reg_only", **kw)
-    self.assertIn("--semantic=oracle", reg)
-    self.assertIn("--nosemantic_prune", reg)
-    self.assertIn("--tau=0.03", reg)
-    self.assertIn("--lambda_c=0", ablate.row_flags("oracle_prune_only", **kw))
-    self.assertIsNone(ablate.row_flags("clip_generic", **kw))
-    generic = ablate.row_flags("clip_generic", tau=None,
-                               weighting="visibility", clip_weights="w.npz")
-    self.assertIn("--distractor_prompts=a photo of an object,a photo of a "
-                  "thing", generic)
-    self.assertIn("--clip_weights=w.npz", generic)
+  def test_row_configs(self):
+    cd = _cd("ablate")
+    reg = sweep.row_config(cd, "oracle_reg_only", semantic={"tau": 0.03})
+    self.assertEqual(reg.semantic.scorer, "oracle")
+    self.assertFalse(reg.semantic.prune)
+    self.assertEqual(reg.semantic.tau, 0.03)
+    self.assertEqual(sweep.row_config(cd, "oracle_prune_only")
+                     .semantic.lambda_c, 0.0)
+    generic = sweep.row_config(cd, "clip_generic")
+    self.assertEqual(generic.semantic.distractor_prompts,
+                     ("a photo of an object", "a photo of a thing"))
+    with self.assertRaisesRegex(Exception, "unknown row 'bogus'"):
+      sweep.row_config(cd, "bogus")
 
   def test_rows_and_markdown(self):
-    rows = [ablate.ablation_row("vanilla", _metrics(20.0), None, 20.0, 23.0),
-            ablate.ablation_row("oracle_reg_only", _metrics(21.5), None,
-                                20.0, 23.0),
-            ablate.ablation_row("clip_generic", None, None, 20.0, 23.0)]
+    cd = _cd("ablate")
+    cfg = lambda row: sweep.row_config(cd, row)
+    rows = [table.ablation_row("vanilla", "vanilla 3DGS (clutter)",
+                               cfg("vanilla"), _metrics(20.0), None, 20.0,
+                               23.0),
+            table.ablation_row("oracle_reg_only", "ORACLE: opacity loss only",
+                               cfg("oracle_reg_only"), _metrics(21.5), None,
+                               20.0, 23.0),
+            table.ablation_row("clip_generic", "CLIP: generic prompts",
+                               cfg("clip_generic"), None, None, 20.0, 23.0)]
     self.assertAlmostEqual(rows[1]["delta_psnr"], 1.5)
     self.assertAlmostEqual(rows[1]["gap_to_clean"], 1.5)
     self.assertEqual(rows[2]["status"], "not run")
-    text = ablate.format_markdown(rows, {"steps": 30})
+    text = table.format_ablation(rows, {"steps": 30})
     self.assertIn("| ORACLE: opacity loss only | 21.50 | +1.50 | +1.50 |",
                   text)
-    self.assertIn("| CLIP: generic prompts | not run: needs --clip_weights", text)
+    self.assertIn("| CLIP: generic prompts | not run: needs --clip_weights",
+                  text)
     self.assertIn("| vanilla 3DGS (clutter) | 20.00 | — | +3.00 |", text)
+
+  def test_clip_rows_not_run_without_weights(self):
+    cd = _cd("ablate")
+    root = self.create_tempdir().full_path
+    cd.sweep.benchmarks = self.create_tempdir("b").full_path
+    ran = []
+
+    def fake_row(cfg, workdir, **kwargs):
+      del kwargs
+      ran.append(os.path.basename(workdir))
+      return _metrics(20.0 + (cfg.semantic.scorer != "off")), None
+    with mock.patch.object(sweep, "run_row", fake_row):
+      out = sweep.run(cd, root)
+    self.assertNotIn("clip", ran)
+    self.assertNotIn("clip_generic", ran)
+    status = {r["row"]: r["status"] for r in out["rows"]}
+    self.assertEqual(status["clip_generic"], "not run")
+    self.assertEqual(status["oracle_prune_only"], "ok")
+    with open(os.path.join(root, "b", "ablate.md")) as f:
+      text = f.read()
+    self.assertIn("ORACLE: pruning only | 21.00 | +1.00 |", text)
 
 
 if __name__ == "__main__":

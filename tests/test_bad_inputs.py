@@ -408,21 +408,22 @@ class TrainScriptTest(absltest.TestCase):
     return lines[0]
 
   def test_downscale_zero(self):
-    self.run_train(f"--scene={self.scene}", "--downscale=0",
+    self.run_train(f"--scene={self.scene}", "--config.data.downscale=0",
                    code=cli.EXIT_USAGE,
-                   says=("--downscale=0", "positive integer"))
+                   says=("--config.data.downscale=0", "positive integer"))
 
   def test_unparsable_flag(self):
     # absl's parse error, without its help hint line.
-    self.run_train(f"--scene={self.scene}", "--steps=abc",
-                   code=cli.EXIT_USAGE, says=("--steps=abc", "invalid literal",
-                                              "--helpshort"))
+    self.run_train(f"--scene={self.scene}", "--config.train.steps=abc",
+                   code=cli.EXIT_USAGE, says=("--config.train.steps=abc",
+                                              "invalid literal", "--helpshort"))
 
   def test_flags_are_checked_before_the_scene(self):
     # The scene is broken too, but the flag is reported: nothing was read.
     os.remove(os.path.join(self.scene, "sparse", "0", "cameras.bin"))
-    self.run_train(f"--scene={self.scene}", "--steps=0",
-                   code=cli.EXIT_USAGE, says=("--steps must be positive",))
+    self.run_train(f"--scene={self.scene}", "--config.train.steps=0",
+                   code=cli.EXIT_USAGE,
+                   says=("--config.train.steps=0 must be positive",))
 
   def test_bad_scene_through_the_script(self):
     path = os.path.join(self.scene, "sparse", "0", "cameras.bin")
@@ -442,11 +443,22 @@ class TrainScriptTest(absltest.TestCase):
   def test_bad_weights_through_the_script(self):
     path = os.path.join(self.tmp, "clip.safetensors")
     pathlib.Path(path).write_text("not weights")
-    line = self.run_train(f"--scene={self.scene}", "--semantic=clip",
+    line = self.run_train(f"--scene={self.scene}",
+                          "--config.semantic.scorer=clip",
                           f"--clip_weights={path}", code=cli.EXIT_USAGE,
-                          says=("--semantic=clip", path, "safetensors",
+                          says=("--config.semantic.scorer=clip", path,
+                                "safetensors",
                                 "pass CLIP ViT-B/32 weights"))
     self.assertNotIn("weights_only", line)
+
+  def test_sweep_without_benchmarks(self):
+    self.run_train("--config=configs/table.py", code=cli.EXIT_USAGE,
+                   says=("--config.sweep.benchmarks", "--scene="))
+
+  def test_sweep_with_bad_taus(self):
+    self.run_train("--config=configs/tau_sweep.py", f"--scene={self.scene}",
+                   "--config.sweep.taus=0.1,abc", code=cli.EXIT_USAGE,
+                   says=("--config.sweep.taus=0.1,abc", "numbers"))
 
   def test_resume_with_another_config_keeps_the_run(self):
     os.makedirs(self.workdir)
@@ -455,7 +467,7 @@ class TrainScriptTest(absltest.TestCase):
     before = _tree(self.workdir)
     status, lines, stderr = _run_train(
         f"--workdir={self.workdir}", f"--scene={self.scene}",
-        "--preset=smoke", "--resume", env=self.env)
+        "--config=configs/smoke.py", "--resume", env=self.env)
     self.assertEqual(status, cli.EXIT_ERROR, stderr)
     self.assertLen(lines, 1, stderr)
     self.assertIn("different config", lines[0])

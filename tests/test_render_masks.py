@@ -89,7 +89,7 @@ def saved_run(tmp_path_factory):
   workdir = tmp_path_factory.mktemp("run")
   scene_path = default_scene.ensure_default_scene()
   scene = scene_lib.load_scene(scene_path, downscale=DOWNSCALE)
-  cfg = train.resolve(config_lib.preset("smoke"), scene)
+  cfg = train.resolve(config_lib.named("smoke"), scene)
   state = train.initial_state(cfg, scene)
   c = state.capacity
   high = jnp.arange(c) < c // 2

@@ -30,7 +30,7 @@ def _scene():
 
 
 def _config():
-  cfg = config.preset("smoke")
+  cfg = config.named("smoke")
   # Oracle scores from step 0, opacity loss from 10, prunes at 25, 35, 45,
   # 55. With every row seen by every view, only the contribution weighting
   # spreads s_j (measured at step 60: median 0.004, 90th percentile 0.015),

@@ -1,23 +1,20 @@
-"""experiments/table.py: row collection, Markdown, and an end-to-end run."""
+"""clipgs_jax.table and sweep: rows, Markdown, and a table end to end."""
 
 import json
 import os
 import pathlib
-import subprocess
-import sys
-import time
+from unittest import mock
 
 from absl.testing import absltest
 
+from clipgs_jax import config
+from clipgs_jax import sweep
+from clipgs_jax import table
 from clipgs_jax.data import default_scene
-
-_REPO = pathlib.Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(_REPO / "experiments"))
-import table  # pylint: disable=g-import-not-at-top,wrong-import-position
 
 
 def _metrics(psnr, *, fraction_pruned=None, label=None, num=1000):
-  """A hand-made train.py metrics.json dict."""
+  """A hand-made metrics.json dict."""
   m = {"test": {"psnr": psnr, "ssim": 0.5, "lpips": 0.25,
                 "lpips_net": "alex"},
        "train_seconds": 12.0, "steps": 30, "num_gaussians": num}
@@ -26,17 +23,27 @@ def _metrics(psnr, *, fraction_pruned=None, label=None, num=1000):
   return m
 
 
+def _table_cd():
+  return config.load_file(os.path.join(config.CONFIGS_DIR, "table.py"))
+
+
+def _row_cfg(row: str) -> config.Config:
+  return sweep.row_config(_table_cd(), row)
+
+
 class FormatTest(absltest.TestCase):
 
   def _rows(self):
     oracle_label = ("CLIP-GS machinery, ORACLE scorer (ground-truth masks, "
                     "not CLIP)")
     return table.add_deltas([
-        table.collect_row("s", "vanilla", _metrics(20.0)),
-        table.collect_row("s", "oracle", _metrics(
+        table.collect_row("s", "vanilla", _row_cfg("vanilla"),
+                          _metrics(20.0)),
+        table.collect_row("s", "oracle", _row_cfg("oracle"), _metrics(
             21.5, fraction_pruned=0.125, label=oracle_label, num=900)),
-        table.collect_row("s", "clip", None, "exit code 3"),
-        table.collect_row("s", "clean", _metrics(24.0)),
+        table.collect_row("s", "clip", _row_cfg("clip"), None,
+                          "error: no weights"),
+        table.collect_row("s", "clean", _row_cfg("clean"), _metrics(24.0)),
     ])
 
   def test_collect_and_deltas(self):
@@ -50,12 +57,15 @@ class FormatTest(absltest.TestCase):
     self.assertAlmostEqual(rows["vanilla"]["gap_to_clean"], 4.0)
     self.assertIsNone(rows["vanilla"]["fraction_pruned"])
     self.assertEqual(rows["clip"]["status"], "failed")
+    self.assertIn("CLIP-GS (ViT-B/32", rows["clip"]["method"])
     self.assertIsNone(rows["clip"]["delta_psnr"])
     self.assertEqual(rows["clean"]["status"], "ok")
+    self.assertEqual(rows["clean"]["method"],
+                     "3DGS on clean views (upper bound)")
 
   def test_oracle_label_forced_and_nan(self):
     m = _metrics(float("nan"), fraction_pruned=1.0, label="something")
-    r = table.collect_row("s", "oracle", m)
+    r = table.collect_row("s", "oracle", _row_cfg("oracle"), m)
     self.assertIn("ORACLE", r["method"])
     self.assertIsNone(r["psnr"])  # Non-finite: None, so JSON stays valid.
     json.dumps(r, allow_nan=False)
@@ -72,58 +82,50 @@ class FormatTest(absltest.TestCase):
     self.assertIn("| 21.50 |", oracle)
     self.assertIn("| 0.125 | n/a | +1.50 | +2.50 |", oracle)
     self.assertIn("| — | — | — | +4.00 |", vanilla)
-    self.assertIn("FAILED (exit code 3)", clip)
+    self.assertIn("FAILED (error: no weights)", clip)
     self.assertIn("| 24.00 |", clean)
     self.assertTrue(clean.endswith("| — | — | — | — |"), clean)
 
-  def test_row_flags(self):
-    pixel = ["oracle_pixel", "oracle_pixel_masked"]
-    self.assertEqual(table.row_names(None),
-                     ["vanilla", "oracle", *pixel, "clean"])
-    self.assertEqual(table.row_names("w.npz"),
-                     ["vanilla", "oracle", *pixel, "clip", "clip_pixel",
-                      "clean"])
-    self.assertEqual(table.row_names(None, ["clean", "oracle_pixel"]),
-                     ["oracle_pixel", "clean"])
-    with self.assertRaisesRegex(ValueError, "unknown rows"):
-      table.row_names(None, ["bogus"])
-    masked = table.row_flags("oracle_pixel_masked", tau=0.1,
-                             weighting="contribution", clip_weights=None)
-    self.assertIn("--evidence=pixel", masked)
-    self.assertIn("--loss_masking", masked)
-    self.assertNotIn("--tau=0.1", masked)
-    self.assertEqual(
-        table.row_flags("clean", tau=0.1, weighting="contribution",
-                        clip_weights=None),
-        ["--train_split=clean", "--semantic=off"])
-    clip = table.row_flags("clip", tau=0.1, weighting="contribution",
-                           clip_weights="w.npz")
-    self.assertIn("--semantic=clip", clip)
-    self.assertIn("--scale_semantic_schedule", clip)
-    self.assertIn("--tau=0.1", clip)
-    self.assertIn("--clip_weights=w.npz", clip)
+  def test_row_configs(self):
+    # The rows of configs/table.py: the old table.py flags, as overrides.
+    cfgs = {row: _row_cfg(row) for row in _table_cd().sweep.rows.split(",")}
+    self.assertEqual(list(cfgs), ["vanilla", "oracle", "oracle_pixel",
+                                  "oracle_pixel_masked", "clip",
+                                  "clip_pixel", "clean"])
+    bench = config.named("benchmark")
+    sem = bench.semantic      # scaled to the steps
+    self.assertEqual(cfgs["vanilla"].semantic.scorer, "off")
+    self.assertEqual(cfgs["clean"].data.train_split, "clean")
+    self.assertEqual(cfgs["oracle"].semantic,
+                     config.SemanticConfig(
+                         scorer="oracle").scaled_to(1000))
+    self.assertEqual(cfgs["oracle_pixel_masked"].semantic.evidence, "pixel")
+    self.assertTrue(cfgs["oracle_pixel_masked"].semantic.loss_masking)
+    self.assertEqual(cfgs["clip_pixel"].semantic.scorer, "clip")
+    for cfg in cfgs.values():   # everything else is the benchmark's
+      self.assertEqual(cfg.render, bench.render)
+      self.assertEqual(cfg.train, bench.train)
+      self.assertEqual(cfg.semantic.prune_start, sem.prune_start)
 
 
 class EndToEndTest(absltest.TestCase):
 
-  def _run(self, scene, root):
-    env = dict(os.environ, JAX_PLATFORMS="cpu",
-               # Compile time dominates these 10-step rows.
-               JAX_DISABLE_MOST_OPTIMIZATIONS="1")
-    cmd = [sys.executable, str(_REPO / "experiments" / "table.py"),
-           f"--benchmarks={scene}", f"--workroot={root}", "--steps=10",
-           "--downscale=4", "--extra_flags=--preset=smoke --curve_points=1",
-           "--rows=vanilla,oracle_pixel,clean"]
-    start = time.monotonic()
-    proc = subprocess.run(cmd, cwd=_REPO, env=env, capture_output=True,
-                          text=True, check=False)
-    self.assertEqual(proc.returncode, 0, proc.stderr[-3000:])
-    return proc, time.monotonic() - start
+  def _cd(self, scene):
+    cd = _table_cd()
+    smoke = config.load_file(os.path.join(config.CONFIGS_DIR, "smoke.py"))
+    for section in ("gaussians", "densify", "train"):
+      cd[section].update(smoke[section])
+    cd.train.steps = 10
+    cd.data.downscale = 4
+    cd.eval.curve_points = 1
+    cd.sweep.rows = "vanilla,oracle_pixel,clean"
+    cd.sweep.benchmarks = scene
+    return cd
 
   def test_three_rows_then_all_skipped(self):
     scene = default_scene.ensure_default_scene()
     root = self.create_tempdir().full_path
-    self._run(scene, root)
+    sweep.run(self._cd(scene), root)
     with open(os.path.join(root, "table.json")) as f:
       out = json.load(f)
     rows = out["rows"]
@@ -141,10 +143,29 @@ class EndToEndTest(absltest.TestCase):
     self.assertIn("ORACLE", text)
     self.assertLen([l for l in text.splitlines()
                     if l.startswith(f"| {os.path.basename(scene)} |")], 3)
+    # Again: every row is finished, nothing trains.
+    with mock.patch.object(sweep, "train_one") as train_one:
+      again = sweep.run(self._cd(scene), root)
+    train_one.assert_not_called()
+    self.assertEqual([r["psnr"] for r in again["rows"]],
+                     [r["psnr"] for r in rows])
 
-    proc, seconds = self._run(scene, root)
-    self.assertEqual(proc.stderr.count("skip "), 3, proc.stderr[-3000:])
-    self.assertLess(seconds, 30.0)  # No training the second time.
+  def test_demo_writes_the_comparison(self):
+    cd = config.load_file(os.path.join(config.CONFIGS_DIR, "demo.py"))
+    smoke = config.load_file(os.path.join(config.CONFIGS_DIR, "smoke.py"))
+    cd.gaussians.update(smoke.gaussians)
+    cd.train.steps = 10
+    root = self.create_tempdir().full_path
+    summary = sweep.run(cd, root)
+    self.assertEqual(sorted(os.listdir(root)),
+                     ["comparison.json", "comparison.png", "guided",
+                      "vanilla"])
+    self.assertIn("ORACLE-PIXEL", summary["guided"]["label"])
+    self.assertEqual(summary["vanilla"]["label"], "vanilla 3DGS")
+    with open(os.path.join(root, "guided", "config.json")) as f:
+      guided = json.load(f)
+    self.assertEqual(guided["train"]["checkpoint_every"], 10)
+    self.assertTrue(guided["semantic"]["loss_masking"])
 
 
 if __name__ == "__main__":

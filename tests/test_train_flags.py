@@ -1,46 +1,131 @@
-"""experiments/train.py rejects bad semantic flags with one clear line."""
+"""configs/*.py and their overrides build the frozen Config, or one error."""
 
 import os
 import pathlib
 import subprocess
 import sys
 
+from absl import app
 from absl.testing import absltest
 from absl.testing import parameterized
+
+from clipgs_jax import config
+from clipgs_jax import sweep
+from clipgs_jax.data import default_scene
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
-class SemanticFlagsTest(parameterized.TestCase):
+def _cd(name: str):
+  return config.load_file(os.path.join(config.CONFIGS_DIR, name + ".py"))
+
+
+class ConfigFilesTest(absltest.TestCase):
+
+  def test_default_is_the_paper_config(self):
+    cfg = sweep.build(_cd("default"))
+    # The embedded scene's steps, and 20 curve points of them.
+    steps = default_scene.TRAIN_STEPS
+    self.assertEqual(cfg.train.steps, steps)
+    self.assertEqual(cfg.train.eval_every, steps // 20)
+    cd = _cd("default")
+    cd.data.scene = str(ROOT)           # any folder: a scene of one's own
+    self.assertEqual(sweep.build(cd).train.steps,
+                     config.TrainConfig().steps)
+    # Apart from the steps and the curve, every field is Config()'s.
+    paper = config.Config()
+    self.assertEqual(cfg.optim, paper.optim)
+    self.assertEqual(cfg.densify, paper.densify)
+    self.assertEqual(cfg.semantic, paper.semantic)
+
+  def test_smoke_is_the_old_preset(self):
+    cfg = config.named("smoke")
+    self.assertEqual(cfg.train, config.TrainConfig(
+        steps=60, log_every=10, eval_every=20, checkpoint_every=30))
+    self.assertEqual(cfg.gaussians.min_capacity, 256)
+    self.assertEqual(cfg.densify.opacity_reset_every, 0)
+
+  def test_benchmark_scales_the_schedule(self):
+    cfg = config.named("benchmark")
+    self.assertEqual((cfg.train.steps, cfg.data.downscale,
+                      cfg.render.tile_budget, cfg.train.eval_every),
+                     (1000, 8, 8192, 50))
+    self.assertEqual(cfg.semantic,
+                     config.SemanticConfig().scaled_to(1000))
+
+  def test_demo_checkpoints_once_at_any_steps(self):
+    cd = _cd("demo")
+    cd.train.steps = 100
+    self.assertEqual(cd.train.checkpoint_every, 100)
+
+  def test_round_trip_and_unknown_keys(self):
+    cfg = config.named("benchmark")
+    self.assertEqual(config.from_dict(config.to_dict(cfg)), cfg)
+    with self.assertRaisesRegex(ValueError, "unknown key densify.evry"):
+      config.from_config_dict({"densify": {"evry": 3}})
+    with self.assertRaisesRegex(ValueError, "train.seed='0' must be of type int"):
+      config.from_config_dict({"train": {"seed": "0"}})
+    with self.assertRaisesRegex(FileNotFoundError, "does not exist"):
+      config.load_file("/nonexistent/config.py")
+
+
+class BadValuesTest(parameterized.TestCase):
 
   @parameterized.named_parameters(
-      ("no_weights", ["--semantic=clip"], "CLIP weights are needed"),
-      ("missing_weights", ["--semantic=clip",
-                           "--clip_weights=/nonexistent/clip.pt"],
-       "do not exist"),
-      ("tau", ["--semantic=oracle", "--tau=2"], "tau=2.0 is not in [0, 1]"),
-      ("cadence", ["--semantic=oracle", "--score_every=0"],
+      ("steps", {"train": {"steps": 0}}, "--config.train.steps=0 must be "
+       "positive"),
+      ("downscale", {"data": {"downscale": 0}}, "--config.data.downscale=0"),
+      ("tile_budget", {"render": {"tile_budget": -1}}, "tile_budget=-1"),
+      ("split", {"data": {"train_split": "dirty"}}, "train_split=dirty"),
+      ("lpips", {"eval": {"lpips_net": "squeeze"}}, "lpips_net=squeeze"),
+      ("no_scene", {"data": {"scene": "/nonexistent/scene"}},
+       "does not exist"),
+      ("tau", {"semantic": {"scorer": "oracle", "tau": 2.0}},
+       "tau=2.0 is not in [0, 1]"),
+      ("cadence", {"semantic": {"scorer": "oracle", "score_every": 0}},
        "score_every=0 must be >= 1"),
-      ("nothing_to_do", ["--semantic=oracle", "--lambda_c=0",
-                         "--nosemantic_prune"], "leaves guidance nothing"),
-      ("lambda_c", ["--semantic=oracle", "--lambda_c=-1"],
-       "lambda_c=-1.0 must be >= 0"),
-      ("no_prompts", ["--semantic=clip", "--distractor_prompts="],
+      ("nothing_to_do", {"semantic": {"scorer": "oracle", "lambda_c": 0.0,
+                                      "prune": False}},
+       "leaves guidance nothing"),
+      ("no_prompts", {"semantic": {"scorer": "clip",
+                                   "distractor_prompts": ""}},
        "no distractor prompts"),
-      ("tau_p", ["--semantic=oracle", "--evidence=pixel", "--tau_p=2"],
-       "tau_p=2.0 is not in [0, 1]"),
-      ("masking_needs_pixels", ["--semantic=oracle", "--loss_masking"],
+      ("masking_needs_pixels", {"semantic": {"scorer": "oracle",
+                                             "loss_masking": True}},
        "loss_masking needs evidence='pixel'"))
-  def test_bad_flags(self, flags, message):
-    env = dict(os.environ, PYTHONPATH=str(ROOT),
-               CLIPGS_CLIP_WEIGHTS="")
-    proc = subprocess.run(
+  def test_bad_value(self, overrides, message):
+    cd = _cd("default").to_dict()
+    for section, values in overrides.items():
+      cd[section].update(values)
+    with self.assertRaises((app.UsageError, FileNotFoundError)) as e:
+      sweep.build(cd)
+    self.assertIn(message, str(e.exception))
+
+
+class ScriptTest(absltest.TestCase):
+  """experiments/train.py: overrides parse, bad ones end in one line."""
+
+  def _train(self, *flags):
+    env = dict(os.environ, PYTHONPATH=str(ROOT), CLIPGS_CLIP_WEIGHTS="",
+               JAX_PLATFORMS="cpu")
+    return subprocess.run(
         [sys.executable, str(ROOT / "experiments" / "train.py"),
-         f"--workdir={self.create_tempdir().full_path}", "--steps=1",
-         *flags], capture_output=True, text=True, env=env, cwd=ROOT,
-        check=False)
-    self.assertNotEqual(proc.returncode, 0)
-    self.assertIn(message, proc.stderr)
+         f"--workdir={self.create_tempdir().full_path}/run", *flags],
+        capture_output=True, text=True, env=env, cwd=ROOT, check=False)
+
+  def test_unknown_field(self):
+    proc = self._train("--config.train.stepz=3")
+    self.assertEqual(proc.returncode, 2, proc.stderr)
+    self.assertIn("stepz", proc.stderr)
+    self.assertIn('Did you mean "steps"', proc.stderr)
+    self.assertNotIn("Traceback", proc.stderr)
+
+  def test_clip_without_weights(self):
+    proc = self._train("--config.semantic.scorer=clip",
+                       "--config.train.steps=1")
+    self.assertEqual(proc.returncode, 2, proc.stderr)
+    self.assertIn("--config.semantic.scorer=clip", proc.stderr)
+    self.assertIn("CLIP weights are needed", proc.stderr)
     self.assertNotIn("Traceback", proc.stderr)
 
 
