@@ -29,8 +29,8 @@ import shlex
 from absl import app
 from absl import flags
 
-from clipgs_jax import checkpoint
 from clipgs_jax import cli
+from clipgs_jax import fileio
 import table  # pylint: disable=g-import-not-at-top
 
 FLAGS = flags.FLAGS
@@ -148,8 +148,8 @@ def main(argv):
       **table.machine_and_date()}
   out = FLAGS.out or root
   os.makedirs(out, exist_ok=True)
-  checkpoint.write_json(os.path.join(out, "ablate.json"),
-                        {"settings": settings, "rows": rows})
+  fileio.write_json(os.path.join(out, "ablate.json"),
+                    {"settings": settings, "rows": rows})
   text = format_markdown(rows, settings)
   table.write_text(os.path.join(out, "ablate.md"), text)
   print(text)

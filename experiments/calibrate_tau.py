@@ -38,8 +38,8 @@ matplotlib.use("Agg")   # files only
 import matplotlib.pyplot as plt  # pylint: disable=g-import-not-at-top,wrong-import-position
 import numpy as np  # pylint: disable=g-import-not-at-top,wrong-import-position
 
-from clipgs_jax import checkpoint  # pylint: disable=g-import-not-at-top,wrong-import-position
 from clipgs_jax import cli  # pylint: disable=g-import-not-at-top,wrong-import-position
+from clipgs_jax import fileio  # pylint: disable=g-import-not-at-top,wrong-import-position
 from clipgs_jax import plots  # pylint: disable=g-import-not-at-top,wrong-import-position
 import table  # pylint: disable=g-import-not-at-top,wrong-import-position
 
@@ -218,8 +218,8 @@ def main(argv):
       **table.machine_and_date()}
   out = FLAGS.out or root
   os.makedirs(out, exist_ok=True)
-  checkpoint.write_json(os.path.join(out, "calibrate_tau.json"),
-                        {"settings": settings, "rows": rows})
+  fileio.write_json(os.path.join(out, "calibrate_tau.json"),
+                    {"settings": settings, "rows": rows})
   text = format_markdown(rows, settings)
   table.write_text(os.path.join(out, "calibrate_tau.md"), text)
   plot_histograms(events, os.path.join(out, "s_j_histogram.png"))

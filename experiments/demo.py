@@ -18,9 +18,9 @@ import os
 from absl import flags
 import numpy as np
 
-from clipgs_jax import checkpoint
 from clipgs_jax import cli
 from clipgs_jax import config as config_lib
+from clipgs_jax import fileio
 from clipgs_jax import guidance
 from clipgs_jax import plots
 from clipgs_jax import run as run_lib
@@ -95,7 +95,7 @@ def main(argv):
           "num_gaussians": m["num_gaussians"]}
       for k, m in metrics.items()}
   summary["view"] = names[view]
-  checkpoint.write_json(os.path.join(workdir, "comparison.json"), summary)
+  fileio.write_json(os.path.join(workdir, "comparison.json"), summary)
   print(json.dumps(summary, indent=1))
 
 

@@ -44,8 +44,8 @@ from absl import app
 from absl import flags
 from absl import logging
 
-from clipgs_jax import checkpoint
 from clipgs_jax import cli
+from clipgs_jax import fileio
 
 FLAGS = flags.FLAGS
 
@@ -306,7 +306,7 @@ def write_text(path: str, text: str) -> None:
   def write(tmp):
     with open(tmp, "w") as f:
       f.write(text)
-  checkpoint.atomic_write(path, write, os.path.splitext(path)[1])
+  fileio.atomic_write(path, write, os.path.splitext(path)[1])
 
 
 def _log_tail(path: str, n: int = LOG_TAIL_LINES) -> str:
@@ -399,8 +399,8 @@ def run_table(benchmarks: list[str], workroot: str, steps: int, *,
   }
   out = out or workroot
   os.makedirs(out, exist_ok=True)
-  checkpoint.write_json(os.path.join(out, "table.json"),
-                        {"settings": settings, "rows": rows})
+  fileio.write_json(os.path.join(out, "table.json"),
+                    {"settings": settings, "rows": rows})
   text = format_markdown(rows, settings)
   write_text(os.path.join(out, "table.md"), text)
   logging.info("wrote %s\n%s", os.path.join(out, "table.md"), text)

@@ -13,6 +13,7 @@ from absl.testing import absltest
 from clipgs_jax import checkpoint
 from clipgs_jax import config
 from clipgs_jax import densify
+from clipgs_jax import fileio
 from clipgs_jax import gaussians
 from clipgs_jax import optim
 from clipgs_jax import train
@@ -86,7 +87,7 @@ class RoundTripTest(absltest.TestCase):
         f.write(b"partial")
       raise RuntimeError("disk full")
     with self.assertRaisesRegex(RuntimeError, "disk full"):
-      checkpoint.atomic_write(path, failing_write, ".npz")
+      fileio.atomic_write(path, failing_write, ".npz")
     # The old file is intact and no temporary file is left behind.
     self.assertEqual(os.listdir(directory), ["ckpt.npz"])
     restored, _ = checkpoint.restore(path, _state(seed=3))

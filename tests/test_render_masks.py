@@ -16,6 +16,7 @@ from clipgs_jax import checkpoint
 from clipgs_jax import config as config_lib
 from clipgs_jax import densify
 from clipgs_jax import evaluation
+from clipgs_jax import fileio
 from clipgs_jax import train
 from clipgs_jax.data import default_scene
 from clipgs_jax.data import scene as scene_lib
@@ -97,12 +98,12 @@ def saved_run(tmp_path_factory):
       acc=jnp.where(high, HIGH, LOW).astype(jnp.float32),
       weight=jnp.ones((c,), jnp.float32), n=jnp.ones((c,), jnp.float32)))
   checkpoint.save(str(workdir / train.CHECKPOINT_NAME), state, cfg, extra={})
-  checkpoint.write_json(str(workdir / "run.json"), {
+  fileio.write_json(str(workdir / "run.json"), {
       "scene": os.path.abspath(scene_path), "embedded_scene": True,
       "downscale": DOWNSCALE, "train_split": "clutter", "preset": "smoke"})
-  checkpoint.write_json(str(workdir / "config.json"), config_lib.to_dict(cfg))
-  checkpoint.write_json(str(workdir / "metrics.json"),
-                        {"test": {"psnr": 12.5}})
+  fileio.write_json(str(workdir / "config.json"), config_lib.to_dict(cfg))
+  fileio.write_json(str(workdir / "metrics.json"),
+                    {"test": {"psnr": 12.5}})
   expected = int(np.sum(np.asarray(state.alive & high)))
   return workdir, scene, expected
 
@@ -166,8 +167,8 @@ def test_bad_workdir(tmp_path):
     render.render_masks(str(missing))
   with pytest.raises(app.UsageError, match="run.json is missing"):
     render.render_masks(str(tmp_path))
-  checkpoint.write_json(str(tmp_path / "run.json"), {})
-  checkpoint.write_json(str(tmp_path / "config.json"), {})
+  fileio.write_json(str(tmp_path / "run.json"), {})
+  fileio.write_json(str(tmp_path / "config.json"), {})
   with pytest.raises(app.UsageError, match="checkpoint.npz is missing"):
     render.render_rgb(str(tmp_path))
 
