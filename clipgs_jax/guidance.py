@@ -211,7 +211,7 @@ def scores_due(step: jax.Array, sem: config_lib.SemanticConfig) -> jax.Array:
   return (since >= 0) & (since % sem.score_every == 0)
 
 
-def opacity_regularizer(stats: densify.SemanticStats,
+def opacity_regularizer(stats: semantic.SemanticStats,
                         opacity_logits: jax.Array, alive: jax.Array,
                         step: jax.Array, sem: config_lib.SemanticConfig
                         ) -> jax.Array:
@@ -220,12 +220,12 @@ def opacity_regularizer(stats: densify.SemanticStats,
   return jnp.where(step >= sem.reg_start, loss, 0.0)
 
 
-def score_and_accumulate(stats: densify.SemanticStats, image: jax.Array,
+def score_and_accumulate(stats: semantic.SemanticStats, image: jax.Array,
                          visible: jax.Array, weight: jax.Array | None,
                          view: jax.Array,
                          step: jax.Array, scorer,
                          sem: config_lib.SemanticConfig
-                         ) -> tuple[densify.SemanticStats,
+                         ) -> tuple[semantic.SemanticStats,
                                     dict[str, jax.Array]]:
   """Scores the rendered view when due and accumulates (eqs. 5-9).
 
@@ -336,7 +336,7 @@ def histogram_edges(sem: config_lib.SemanticConfig) -> list[float]:
 
 
 def summarize(prune_events: list[dict], num_alive: int,
-              stats: densify.SemanticStats) -> dict[str, Any]:
+              stats: semantic.SemanticStats) -> dict[str, Any]:
   """The metrics.json fields of a run's semantic stage.
 
   fraction_pruned = Gaussians removed by the semantic prune / (those

@@ -29,7 +29,6 @@ from clipgs_jax import project
 from clipgs_jax import rasterize
 from clipgs_jax import semantic as semantic_lib
 from clipgs_jax import sh
-from clipgs_jax.data import scene as scene_lib
 
 _log = logging.getLogger(__name__)
 
@@ -58,7 +57,7 @@ class TrainState:
   alive: jax.Array
   opt_state: Any
   densify: densify.DensifyStats
-  semantic: densify.SemanticStats
+  semantic: semantic_lib.SemanticStats
   step: jax.Array
   key: jax.Array
 
@@ -113,7 +112,7 @@ def init_state(cfg: config_lib.Config, params: gaussians.GaussianParams,
       params=params, alive=alive,
       opt_state=make_optimizer(cfg).init(params),
       densify=densify.DensifyStats.zeros(capacity),
-      semantic=densify.SemanticStats.zeros(capacity),
+      semantic=semantic_lib.SemanticStats.zeros(capacity),
       step=jnp.zeros((), jnp.int32),
       key=jax.random.key(cfg.train.seed))
 
@@ -165,7 +164,7 @@ def train_step(state: TrainState, batch: Batch, scorer=None, *,
   num_views, height, width = batch.images.shape[:3]
   step = state.step
   view = view_index(state.key, step, num_views)
-  cam = scene_lib.camera_at(batch.cameras, view)
+  cam = camera_lib.camera_at(batch.cameras, view)
   target = batch.images[view]
   bg = background(state.key, step, cfg)
   degree = sh.active_degree(step, cfg.densify.sh_degree_every,

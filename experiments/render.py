@@ -32,7 +32,6 @@ import numpy as np
 from clipgs_jax import checkpoint
 from clipgs_jax import cli
 from clipgs_jax import config as config_lib
-from clipgs_jax import densify
 from clipgs_jax import evaluation
 from clipgs_jax import fileio
 from clipgs_jax import run as run_lib
@@ -55,7 +54,7 @@ def _define_flags() -> None:
   flags.mark_flag_as_required("workdir")
 
 
-def select_transient(stats: densify.SemanticStats, alive, tau: float
+def select_transient(stats: semantic.SemanticStats, alive, tau: float
                      ) -> np.ndarray:
   """bool [C], alive Gaussians whose normalized score s_j exceeds tau.
 

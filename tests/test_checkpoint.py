@@ -16,6 +16,7 @@ from clipgs_jax import densify
 from clipgs_jax import fileio
 from clipgs_jax import gaussians
 from clipgs_jax import optim
+from clipgs_jax import semantic
 from clipgs_jax import train
 from test_train import synthetic_scene, TEST_CFG  # pylint: disable=g-bad-import-order
 
@@ -32,7 +33,7 @@ def _state(capacity=16, seed=0):
       opt_state=optim.map_rows(
           state.opt_state, capacity,
           lambda x: jnp.asarray(rng.normal(size=x.shape), x.dtype)),
-      semantic=densify.SemanticStats(
+      semantic=semantic.SemanticStats(
           acc=jnp.asarray(rng.random(capacity), jnp.float32),
           weight=jnp.asarray(rng.random(capacity), jnp.float32),
           n=jnp.arange(capacity, dtype=jnp.float32)),

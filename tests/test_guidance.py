@@ -17,6 +17,7 @@ from absl.testing import parameterized
 from clipgs_jax import config
 from clipgs_jax import densify
 from clipgs_jax import guidance
+from clipgs_jax import semantic
 from clipgs_jax import train
 from test_densify import CFG as DENSIFY_CFG  # pylint: disable=g-bad-import-order
 from test_densify import _drive, _make_state, _row_leaves, _tag_state  # pylint: disable=g-bad-import-order
@@ -42,7 +43,7 @@ def _state_with_stats(acc, n, opacity, alive):
       alive=jnp.asarray(alive),
       params=state.params.replace(
           opacity_logits=jnp.asarray(logits, jnp.float32)),
-      semantic=densify.SemanticStats(acc=jnp.asarray(acc, jnp.float32),
+      semantic=semantic.SemanticStats(acc=jnp.asarray(acc, jnp.float32),
                                      weight=jnp.asarray(n, jnp.float32),
                                      n=jnp.asarray(n, jnp.float32)))
 
@@ -140,7 +141,7 @@ class ScorerTest(absltest.TestCase):
     masks = np.zeros((1, 2, 2), bool)
     masks[0, 0, 0] = True                       # f = 0.25
     scorer = guidance.OracleScorer(masks=jnp.asarray(masks), saturation=0.5)
-    stats = densify.SemanticStats.zeros(3)
+    stats = semantic.SemanticStats.zeros(3)
     visible = jnp.array([True, False, True])
     image = jnp.zeros((2, 2, 3))
     fn = jax.jit(guidance.score_and_accumulate, static_argnums=(7,))
@@ -234,7 +235,7 @@ class PruneTest(parameterized.TestCase):
       n = np.where(rng.random(64) < 0.2, 1.0, 2.0 * tags)
       acc = np.where(n == 1.0, tags, 0.0)
       n = jnp.asarray(np.where(host.alive, n, 0.0), jnp.float32)
-      state = state.replace(semantic=densify.SemanticStats(
+      state = state.replace(semantic=semantic.SemanticStats(
           acc=jnp.asarray(acc, jnp.float32), weight=n, n=n))
       before = jax.device_get(state)
       state, info = prune_fn(state)

@@ -14,9 +14,9 @@ import pytest
 
 from clipgs_jax import checkpoint
 from clipgs_jax import config as config_lib
-from clipgs_jax import densify
 from clipgs_jax import evaluation
 from clipgs_jax import fileio
+from clipgs_jax import semantic
 from clipgs_jax import train
 from clipgs_jax.data import default_scene
 from clipgs_jax.data import scene as scene_lib
@@ -43,7 +43,7 @@ def _read_u8(path):
 
 def test_select_transient():
   n = jnp.array([1.0, 1.0, 2.0, 0.0])
-  stats = densify.SemanticStats(acc=jnp.array([0.02, 0.01, 0.05, 0.0]),
+  stats = semantic.SemanticStats(acc=jnp.array([0.02, 0.01, 0.05, 0.0]),
                                 weight=n, n=n)
   alive = np.array([True, True, False, True])
   # s = [0.02, 0.01, 0.025, 0 (n = 0)]; slot 2 is dead.
@@ -94,7 +94,7 @@ def saved_run(tmp_path_factory):
   state = train.initial_state(cfg, scene)
   c = state.capacity
   high = jnp.arange(c) < c // 2
-  state = state.replace(semantic=densify.SemanticStats(
+  state = state.replace(semantic=semantic.SemanticStats(
       acc=jnp.where(high, HIGH, LOW).astype(jnp.float32),
       weight=jnp.ones((c,), jnp.float32), n=jnp.ones((c,), jnp.float32)))
   checkpoint.save(str(workdir / train.CHECKPOINT_NAME), state, cfg, extra={})

@@ -19,7 +19,6 @@ from clipgs_jax import evaluation
 from clipgs_jax import gaussians
 from clipgs_jax import sh
 from clipgs_jax import train
-from clipgs_jax.data import scene as scene_lib
 
 TEST_CFG = config.Config(
     gaussians=config.GaussiansConfig(capacity=256, max_capacity=256,
@@ -78,7 +77,7 @@ def synthetic_scene(num=48, size=32, num_train=8, num_test=2, seed=0):
   stacked = jax.tree.map(lambda *x: np.stack(x), *cams)
   render = evaluation._render_fn(TEST_CFG.render)
   images = np.stack([
-      np.asarray(render(params, alive, scene_lib.camera_at(stacked, i),
+      np.asarray(render(params, alive, camera.camera_at(stacked, i),
                         jnp.zeros(3), jnp.int32(0))[0])
       for i in range(total)])
 
