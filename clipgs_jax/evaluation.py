@@ -137,7 +137,7 @@ def transient_mask_iou(params: gaussians.GaussianParams, views,
                        cfg: config_lib.Config) -> dict | None:
   """IoU of a Gaussian subset's rendered alpha against the views' masks.
 
-  Used for the Gaussians a run's semantic prune removed (train.FitResult.
+  Used for the Gaussians a run's semantic prune removed (loop.FitResult.
   pruned): rendered alone into every training view, how well do they cover
   the ground-truth transients?
 

@@ -20,6 +20,7 @@ from clipgs_jax import config as config_lib
 from clipgs_jax import evaluation
 from clipgs_jax import fileio
 from clipgs_jax import guidance
+from clipgs_jax import loop
 from clipgs_jax import plots
 from clipgs_jax import ply
 from clipgs_jax import train
@@ -112,7 +113,7 @@ def semantic_label(sem: config_lib.SemanticConfig) -> str:
 
 
 def _write_semantic_logs(workdir: str, cfg: config_lib.Config,
-                         result: train.FitResult, scene) -> dict:
+                         result: loop.FitResult, scene) -> dict:
   """scores.jsonl and prune_events.json; returns metrics.json's block."""
   def write_lines(tmp):
     with open(tmp, "w") as f:

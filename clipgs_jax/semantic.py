@@ -29,8 +29,9 @@ MIN_EVIDENCE_WEIGHT = 1.0
 # colour error; the rest of its weight counts neither way. A Gaussian that
 # fits the transient (a ghost) reproduces it; a static Gaussian that the
 # transient hides in this photo draws something else there. 0.1 (26/255)
-# is about twice a fitted render's L1 error on the benchmarks at 1000 steps (train l1 0.03-0.05) and well below the contrast
-# of a pasted object against what it hides.
+# is about twice a fitted render's L1 error on the benchmarks at 1000 steps
+# (train l1 0.03-0.05) and well below the contrast of a pasted object
+# against what it hides.
 AGREEMENT_TOLERANCE = 0.1
 
 
@@ -82,7 +83,8 @@ def _check_score(score) -> None:
 
 def accumulate(stats: SemanticStats, visible: jax.Array,
                s_hat_d: jax.Array, beta: float,
-               weight: jax.Array | None = None) -> SemanticStats:
+               weight: jax.Array | None = None,
+               scored: jax.Array | bool = True) -> SemanticStats:
   """Eqs. 8-9: acc += w * beta * max(0, s_hat_d - 0.5), weight += w, n += v.
 
   With the paper's weight w = v_j (visibility, the default), every visible
@@ -99,12 +101,15 @@ def accumulate(stats: SemanticStats, visible: jax.Array,
     s_hat_d: float [], the view's normalised distractor score.
     beta: accumulation rate (paper: 0.1).
     weight: float [C] >= 0 or None (= visible).
+    scored: bool [], the view was scored; False adds nothing (s_hat_d is
+      then a placeholder).
   Returns:
     The updated statistics. A non-finite score (possible only under jit,
-    where it cannot raise) leaves the statistics unchanged.
+    where it cannot raise; train.fit raises on it at the next log step)
+    leaves the statistics unchanged.
   """
   _check_score(s_hat_d)
-  ok = jnp.isfinite(s_hat_d)
+  ok = jnp.logical_and(scored, jnp.isfinite(s_hat_d))
   gain = beta * jnp.maximum(0.0, jnp.where(ok, s_hat_d, 0.0) - NEUTRAL_SCORE)
   dtype = stats.acc.dtype
   v = jnp.where(ok, visible.astype(dtype), 0.0)
