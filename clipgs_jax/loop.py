@@ -128,8 +128,8 @@ def start_clock(flog: FitLog) -> FitLog:
 def stop_clock(state, flog: FitLog) -> FitLog:
   """Waits for the device and adds the time since the clock started."""
   jax.block_until_ready(state)
-  return dataclasses.replace(
-      flog, train_seconds=flog.train_seconds + time.perf_counter() - flog.tic)
+  elapsed = time.perf_counter() - flog.tic
+  return dataclasses.replace(flog, train_seconds=flog.train_seconds + elapsed)
 
 
 def record_step(flog: FitLog, step: int, metrics: dict[str, jax.Array],
