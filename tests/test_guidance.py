@@ -183,7 +183,11 @@ class PruneTest(parameterized.TestCase):
     opacity = [0.5, 0.05, 0.05, 0.5, 0.5]
     alive = [True, True, True, True, False]
     state = _state_with_stats(acc, n, opacity, alive)
+    before = jax.device_get(state.params)
     state, info = guidance.prune(state, cfg=cfg)
+    # The parameters stay, pruned rows included: fit gathers the removed
+    # rows after the prune (loop.semantic_prune).
+    chex.assert_trees_all_equal(state.params, before)
     # Row 0: semantic. Row 2: n = 0 < 10 and alpha 0.05 < 0.1: visibility.
     # Row 1: n = 10 is not < 10. Row 3: alpha 0.5. Row 4 was dead.
     np.testing.assert_array_equal(state.alive, [False, True, False, True,
