@@ -13,6 +13,7 @@ from typing import Any
 
 import flax.struct
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 
@@ -92,6 +93,22 @@ def validate(cam: Camera, name: str = "camera") -> None:
   if np.abs(rot @ rot.T - np.eye(3)).max() > 1e-3:
     raise ValueError(f"{name}.rotation is not a rotation matrix "
                      "(R @ R.T != I); pass a world-to-camera rotation.")
+
+
+def camera_at(cameras: Camera, i) -> Camera:
+  """The i-th camera of stacked cameras.
+
+  Args:
+    cameras: Camera with a leading [V] axis on its array fields.
+    i: int, or an int32 [] array that may be traced under jit.
+
+  Returns:
+    Camera with unbatched fields (numpy for a Python int and numpy
+    fields, jax arrays otherwise).
+  """
+  if isinstance(i, (int, np.integer)) and isinstance(cameras.fx, np.ndarray):
+    return jax.tree.map(lambda x: x[i], cameras)
+  return jax.tree.map(lambda x: jnp.take(jnp.asarray(x), i, axis=0), cameras)
 
 
 def camera_center(cam: Camera, xnp=np):

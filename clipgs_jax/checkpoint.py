@@ -9,7 +9,6 @@ config as JSON), "meta/extra" (JSON: the loop's curve and timers) and
 
 import json
 import os
-import tempfile
 from typing import Any
 import zipfile
 import zlib
@@ -20,6 +19,7 @@ import numpy as np
 
 from clipgs_jax import config as config_lib
 from clipgs_jax import densify
+from clipgs_jax import fileio
 
 # 2: SemanticStats gained `weight` (contribution-weighted s_j normaliser).
 VERSION = 2
@@ -53,47 +53,6 @@ def flatten(tree) -> dict[str, Any]:
   return {"/".join(_key_name(e) for e in path): leaf for path, leaf in leaves}
 
 
-def atomic_write(path: str, write_fn, suffix: str = "") -> None:
-  """Calls write_fn(tmp_path) and renames the result onto `path`.
-
-  The temporary file lives in the same directory (so os.replace is an
-  atomic rename) and keeps `suffix`, for writers that pick a format from
-  the extension. A reader never sees a partial file.
-  """
-  directory = os.path.dirname(os.path.abspath(path))
-  os.makedirs(directory, exist_ok=True)
-  fd, tmp = tempfile.mkstemp(dir=directory, suffix=".tmp" + suffix,
-                             prefix="." + os.path.basename(path) + ".")
-  os.close(fd)
-  try:
-    try:
-      write_fn(tmp)
-    except OSError as e:
-      if e.filename is not None or not e.errno:
-        raise
-      # The disk filled up (or the like) under a writer that does not name
-      # its file; name the destination.
-      raise OSError(e.errno, e.strerror, path) from e
-    # mkstemp creates the file 0600; give it the usual umask-based mode.
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)
-    os.replace(tmp, path)
-  except BaseException:
-    if os.path.exists(tmp):
-      os.remove(tmp)
-    raise
-
-
-def write_json(path: str, obj) -> None:
-  """Atomic JSON write."""
-  def write(tmp):
-    with open(tmp, "w") as f:
-      json.dump(obj, f, indent=2, sort_keys=True)
-      f.write("\n")
-  atomic_write(path, write, ".json")
-
-
 def save(path: str, state, cfg: config_lib.Config,
          extra: dict | None = None) -> None:
   """Writes `state` (a TrainState), the config and `extra` to `path`."""
@@ -111,7 +70,7 @@ def save(path: str, state, cfg: config_lib.Config,
       np.savez(f, **arrays)
       f.flush()
       os.fsync(f.fileno())
-  atomic_write(path, write, ".npz")
+  fileio.atomic_write(path, write, ".npz")
 
 
 def _unreadable(path: str, e: BaseException) -> CheckpointError:

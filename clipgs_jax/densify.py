@@ -7,8 +7,9 @@ parameters, the alive mask, Adam's mu/nu and every per-row statistic
 that receive a new Gaussian start with zero moments and zero statistics.
 
 `state` below is a `train.TrainState` (fields params, alive, opt_state,
-densify, semantic, step); this module does not import train.py, so the
-semantic module can use `SemanticStats` without an import cycle.
+densify, semantic, step); this module does not import train.py. Row
+operations map over `state.semantic` (a `semantic.SemanticStats`) as a
+pytree, so this module needs no semantic import either.
 """
 
 import functools
@@ -51,27 +52,6 @@ class DensifyStats:
     # Separate buffers: one shared array could not be donated three times.
     z = lambda: jnp.zeros((capacity,), jnp.float32)
     return cls(grad_accum=z(), denom=z(), max_radius=z())
-
-
-@flax.struct.dataclass
-class SemanticStats:
-  """CLIP-GS per-Gaussian distractor statistics (DESIGN.md steps 4-5).
-
-  Attributes:
-    acc: float [C], accumulated weight * beta * max(0, s_hat_d - 0.5).
-    weight: float [C], accumulated weight; s_j = acc / weight. Equal to n
-      under the paper's visibility weighting.
-    n: float [C], number of scored views in which the Gaussian contributed
-      (the n_j of the eq. 13 visibility rule, whatever the weighting).
-  """
-  acc: Any
-  weight: Any
-  n: Any
-
-  @classmethod
-  def zeros(cls, capacity: int) -> "SemanticStats":
-    z = lambda: jnp.zeros((capacity,), jnp.float32)
-    return cls(acc=z(), weight=z(), n=z())
 
 
 def apply_rows(state, *, params_fn: Callable, alive_fn: Callable,

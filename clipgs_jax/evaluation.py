@@ -7,11 +7,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from clipgs_jax import camera as camera_lib
 from clipgs_jax import config as config_lib
 from clipgs_jax import gaussians
 from clipgs_jax import metrics as metrics_lib
 from clipgs_jax import rasterize
-from clipgs_jax.data import scene as scene_lib
 
 
 # A pixel is predicted transient where the flagged Gaussians cover more than
@@ -41,7 +41,7 @@ def renders(params: gaussians.GaussianParams, alive, views,
   degree = jnp.asarray(params.sh_degree, jnp.int32)
   cams = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), views.cameras)
   for i in range(len(views.images)):
-    yield render(params, alive, scene_lib.camera_at(cams, i), bg, degree)
+    yield render(params, alive, camera_lib.camera_at(cams, i), bg, degree)
 
 
 @functools.lru_cache(maxsize=None)
@@ -137,7 +137,7 @@ def transient_mask_iou(params: gaussians.GaussianParams, views,
                        cfg: config_lib.Config) -> dict | None:
   """IoU of a Gaussian subset's rendered alpha against the views' masks.
 
-  Used for the Gaussians a run's semantic prune removed (train.FitResult.
+  Used for the Gaussians a run's semantic prune removed (loop.FitResult.
   pruned): rendered alone into every training view, how well do they cover
   the ground-truth transients?
 

@@ -6,9 +6,10 @@ and applies the prune through `densify.write_rows`, so parameters, Adam
 moments and every per-row statistic move together.
 
 A scorer is a pytree with a method `score(image, view) -> {"s_hat_d",
-"s_hat_s"}` (float32 scalars; NaN where a scorer has no such score). It is
-passed to the jitted train step as its own argument, so frozen CLIP weights
-are an input of the step, never part of the trained state:
+"s_hat_s"}` (float32 scalars; s_hat_s is NaN when the scorer has no static
+prompts, and any other NaN stops training). It is passed to the jitted
+train step as its own argument, so frozen CLIP weights are an input of the
+step, never part of the trained state:
   - `OracleScorer` (benchmarks only): the ground-truth transient mask of the
     training view through `semantic.oracle_score`; no static score.
   - `clip.scorer.ClipScorer` (the paper): the Flax CLIP tower on the
@@ -40,15 +41,27 @@ from clipgs_jax import densify
 from clipgs_jax import semantic
 
 # Keys of the per-step scores in the train step's metrics: image evidence
-# logs the view's scores, pixel evidence the mean of the view's map.
+# logs the view's scores, pixel evidence the mean of the view's map. Beside
+# them the step logs "view" and "scored" (bool: the step scored its view;
+# the values of other steps are placeholders).
 SCORE_KEYS = ("s_hat_d", "s_hat_s")
 MAP_KEYS = ("map_mean",)
+# Scores a scorer may lack (NaN, logged as None): s_hat_s needs static
+# prompts. Any other non-finite score on a scored step is an error.
+OPTIONAL_SCORE_KEYS = ("s_hat_s",)
+
+
+def per_step_value_keys(sem: config_lib.SemanticConfig) -> tuple[str, ...]:
+  """The per-step scores that fit logs for each scored step."""
+  return MAP_KEYS if sem.localized else SCORE_KEYS
 
 
 def per_step_keys(sem: config_lib.SemanticConfig) -> tuple[str, ...]:
-  """The train step's metrics that fit logs per scored step (scores.jsonl);
-  the first is NaN on steps that did not score."""
-  return (MAP_KEYS if sem.localized else SCORE_KEYS) + ("view",)
+  """Every per-step key of the train step's metrics (scores.jsonl), kept
+  out of the training log."""
+  return per_step_value_keys(sem) + ("view", "scored")
+
+
 # Bins of the s_j histogram logged at each prune event, over [0, beta / 2]
 # for image evidence (s_j is a mean of beta * max(0, s_hat_d - 0.5) <=
 # beta / 2) and over [0, 1] for pixel evidence (s_j is a probability).
@@ -211,7 +224,7 @@ def scores_due(step: jax.Array, sem: config_lib.SemanticConfig) -> jax.Array:
   return (since >= 0) & (since % sem.score_every == 0)
 
 
-def opacity_regularizer(stats: densify.SemanticStats,
+def opacity_regularizer(stats: semantic.SemanticStats,
                         opacity_logits: jax.Array, alive: jax.Array,
                         step: jax.Array, sem: config_lib.SemanticConfig
                         ) -> jax.Array:
@@ -220,17 +233,17 @@ def opacity_regularizer(stats: densify.SemanticStats,
   return jnp.where(step >= sem.reg_start, loss, 0.0)
 
 
-def score_and_accumulate(stats: densify.SemanticStats, image: jax.Array,
+def score_and_accumulate(stats: semantic.SemanticStats, image: jax.Array,
                          visible: jax.Array, weight: jax.Array | None,
                          view: jax.Array,
                          step: jax.Array, scorer,
                          sem: config_lib.SemanticConfig
-                         ) -> tuple[densify.SemanticStats,
+                         ) -> tuple[semantic.SemanticStats,
                                     dict[str, jax.Array]]:
   """Scores the rendered view when due and accumulates (eqs. 5-9).
 
-  The scorer runs under `lax.cond`, so off-cadence steps skip it. Their
-  scores are NaN, which `semantic.accumulate` treats as "no view".
+  The scorer runs under `lax.cond`, so off-cadence steps skip it; their
+  scores are 0 placeholders with "scored" False, and add nothing.
 
   Args:
     stats: per-row acc, weight and n.
@@ -243,18 +256,19 @@ def score_and_accumulate(stats: densify.SemanticStats, image: jax.Array,
     scorer: an object with `score(image, view)` (see module docstring).
     sem: the semantic config.
   Returns:
-    (stats, {"s_hat_d", "s_hat_s"}), NaN scores on steps that did not score.
+    (stats, {"s_hat_d", "s_hat_s", "scored": bool []}).
   """
   image = jax.lax.stop_gradient(jnp.clip(image, 0.0, 1.0))
-  skipped = {k: jnp.float32(jnp.nan) for k in SCORE_KEYS}
+  due = scores_due(step, sem)
+  skipped = {k: jnp.float32(0.0) for k in SCORE_KEYS}
   scores = jax.lax.cond(
-      scores_due(step, sem),
+      due,
       lambda: {k: jnp.asarray(v, jnp.float32)
                for k, v in scorer.score(image, view).items()},
       lambda: skipped)
   stats = semantic.accumulate(stats, visible, scores["s_hat_d"], sem.beta,
-                              weight)
-  return stats, scores
+                              weight, scored=due)
+  return stats, scores | {"scored": due}
 
 
 def prune_due(step: int, cfg: config_lib.Config) -> bool:
@@ -336,7 +350,7 @@ def histogram_edges(sem: config_lib.SemanticConfig) -> list[float]:
 
 
 def summarize(prune_events: list[dict], num_alive: int,
-              stats: densify.SemanticStats) -> dict[str, Any]:
+              stats: semantic.SemanticStats) -> dict[str, Any]:
   """The metrics.json fields of a run's semantic stage.
 
   fraction_pruned = Gaussians removed by the semantic prune / (those

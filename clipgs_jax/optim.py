@@ -76,12 +76,6 @@ def map_rows(opt_state, capacity: int, fn: Callable) -> optax.OptState:
       lambda x: fn(x) if is_row_leaf(x, capacity) else x, opt_state)
 
 
-def zero_rows(opt_state, idx: jax.Array, capacity: int) -> optax.OptState:
-  """Zeroes Adam moments of rows `idx` (out-of-range indices write nothing)."""
-  return map_rows(opt_state, capacity,
-                  lambda x: x.at[idx].set(0, mode="drop"))
-
-
 def zero_field(opt_state, field: str, capacity: int) -> optax.OptState:
   """Zeroes the Adam moments of one GaussianParams field for every row."""
   if field not in FIELDS:

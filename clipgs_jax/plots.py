@@ -7,7 +7,7 @@ import matplotlib
 matplotlib.use("Agg")   # files only; no display on the training machines
 import matplotlib.pyplot as plt  # pylint: disable=g-import-not-at-top,wrong-import-position
 
-from clipgs_jax import checkpoint  # pylint: disable=g-import-not-at-top,wrong-import-position
+from clipgs_jax import fileio  # pylint: disable=g-import-not-at-top,wrong-import-position
 
 
 def _read(path: str) -> list[dict]:
@@ -24,7 +24,7 @@ def save_figure(fig, out_path: str) -> None:
   """Lays out `fig`, writes it as a PNG atomically and closes it."""
   fig.tight_layout()
   try:
-    checkpoint.atomic_write(out_path, fig.savefig, ".png")
+    fileio.atomic_write(out_path, fig.savefig, ".png")
   finally:
     plt.close(fig)
 

@@ -16,10 +16,11 @@ from typing import Any
 import jax
 import numpy as np
 
-from clipgs_jax import checkpoint
 from clipgs_jax import config as config_lib
 from clipgs_jax import evaluation
+from clipgs_jax import fileio
 from clipgs_jax import guidance
+from clipgs_jax import loop
 from clipgs_jax import plots
 from clipgs_jax import ply
 from clipgs_jax import train
@@ -112,15 +113,15 @@ def semantic_label(sem: config_lib.SemanticConfig) -> str:
 
 
 def _write_semantic_logs(workdir: str, cfg: config_lib.Config,
-                         result: train.FitResult, scene) -> dict:
+                         result: loop.FitResult, scene) -> dict:
   """scores.jsonl and prune_events.json; returns metrics.json's block."""
   def write_lines(tmp):
     with open(tmp, "w") as f:
       for row in result.scores:
         f.write(json.dumps(row) + "\n")
-  checkpoint.atomic_write(os.path.join(workdir, SCORES_JSONL), write_lines,
-                          ".jsonl")
-  checkpoint.write_json(os.path.join(workdir, PRUNE_EVENTS_JSON), {
+  fileio.atomic_write(os.path.join(workdir, SCORES_JSONL), write_lines,
+                      ".jsonl")
+  fileio.write_json(os.path.join(workdir, PRUNE_EVENTS_JSON), {
       "scorer": cfg.semantic.scorer, "evidence": cfg.semantic.evidence,
       "histogram_edges": guidance.histogram_edges(cfg.semantic),
       "events": result.prune_events})
@@ -158,11 +159,11 @@ def train_and_evaluate(cfg: config_lib.Config, scene, workdir: str, *,
   """
   cfg = train.resolve(cfg, scene)
   os.makedirs(workdir, exist_ok=True)
-  checkpoint.write_json(os.path.join(workdir, RUN_JSON), dict(
+  fileio.write_json(os.path.join(workdir, RUN_JSON), dict(
       run_info or {}, lpips_net=lpips_net,
       guidance=semantic_label(cfg.semantic)))
-  checkpoint.write_json(os.path.join(workdir, CONFIG_JSON),
-                        config_lib.to_dict(cfg))
+  fileio.write_json(os.path.join(workdir, CONFIG_JSON),
+                    config_lib.to_dict(cfg))
   result = train.fit(cfg, scene, workdir, scorer=scorer, resume=resume,
                      progress=progress)
   state = result.state
@@ -171,7 +172,7 @@ def train_and_evaluate(cfg: config_lib.Config, scene, workdir: str, *,
   ply.write_ply(os.path.join(workdir, POINT_CLOUD_PLY), state.params,
                 state.alive)
   curve_path = os.path.join(workdir, CURVE_JSON)
-  checkpoint.write_json(curve_path, result.curve)
+  fileio.write_json(curve_path, result.curve)
   plots.plot([curve_path], os.path.join(workdir, CURVE_PNG),
              labels=[os.path.basename(os.path.normpath(workdir))])
   final_log = result.log[-1] if result.log else {}
@@ -196,5 +197,5 @@ def train_and_evaluate(cfg: config_lib.Config, scene, workdir: str, *,
   }
   if cfg.semantic.enabled:
     metrics["semantic"] = _write_semantic_logs(workdir, cfg, result, scene)
-  checkpoint.write_json(os.path.join(workdir, METRICS_JSON), metrics)
+  fileio.write_json(os.path.join(workdir, METRICS_JSON), metrics)
   return metrics

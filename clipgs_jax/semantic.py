@@ -3,15 +3,17 @@
 Per training step: score the rendered view (eqs. 5-7), accumulate the score
 into the Gaussians that contributed to it (eqs. 8-9), normalise by view count
 (eq. 10), penalise opacity by the normalised score (eqs. 11-12) and prune
-(eq. 13). Statistics live in `densify.SemanticStats` so that densification
-and pruning move them with the parameters.
+(eq. 13). The per-row statistics are `SemanticStats`, a field of the train
+state, so densification and pruning (densify.apply_rows) move them with the
+parameters.
 """
 
+from typing import Any
+
+import flax.struct
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from clipgs_jax import densify
 
 # s_hat = (cos + 1) / 2 maps cosine similarity to [0, 1]; 0.5 (cos = 0) is
 # the neutral point below which a view adds no distractor evidence.
@@ -26,10 +28,32 @@ MIN_EVIDENCE_WEIGHT = 1.0
 # reproduces the photo there, falling linearly to 0 at this mean absolute
 # colour error; the rest of its weight counts neither way. A Gaussian that
 # fits the transient (a ghost) reproduces it; a static Gaussian that the
-# transient hides in this photo draws something else there. 0.1 (26/255) is about twice a fitted render's L1 error on the
-# benchmarks at 1000 steps (train l1 0.03-0.05) and well below the contrast
-# of a pasted object against what it hides.
+# transient hides in this photo draws something else there. 0.1 (26/255)
+# is about twice a fitted render's L1 error on the benchmarks at 1000 steps
+# (train l1 0.03-0.05) and well below the contrast of a pasted object
+# against what it hides.
 AGREEMENT_TOLERANCE = 0.1
+
+
+@flax.struct.dataclass
+class SemanticStats:
+  """CLIP-GS per-Gaussian distractor statistics (DESIGN.md steps 4-5).
+
+  Attributes:
+    acc: float [C], accumulated weight * beta * max(0, s_hat_d - 0.5).
+    weight: float [C], accumulated weight; s_j = acc / weight. Equal to n
+      under the paper's visibility weighting.
+    n: float [C], number of scored views in which the Gaussian contributed
+      (the n_j of the eq. 13 visibility rule, whatever the weighting).
+  """
+  acc: Any
+  weight: Any
+  n: Any
+
+  @classmethod
+  def zeros(cls, capacity: int) -> "SemanticStats":
+    z = lambda: jnp.zeros((capacity,), jnp.float32)
+    return cls(acc=z(), weight=z(), n=z())
 
 
 def normalized_max_cosine(image_embedding: jax.Array,
@@ -57,9 +81,10 @@ def _check_score(score) -> None:
     raise ValueError(f"s_hat_d must be a finite score in [0, 1], got {value}.")
 
 
-def accumulate(stats: densify.SemanticStats, visible: jax.Array,
+def accumulate(stats: SemanticStats, visible: jax.Array,
                s_hat_d: jax.Array, beta: float,
-               weight: jax.Array | None = None) -> densify.SemanticStats:
+               weight: jax.Array | None = None,
+               scored: jax.Array | bool = True) -> SemanticStats:
   """Eqs. 8-9: acc += w * beta * max(0, s_hat_d - 0.5), weight += w, n += v.
 
   With the paper's weight w = v_j (visibility, the default), every visible
@@ -76,12 +101,15 @@ def accumulate(stats: densify.SemanticStats, visible: jax.Array,
     s_hat_d: float [], the view's normalised distractor score.
     beta: accumulation rate (paper: 0.1).
     weight: float [C] >= 0 or None (= visible).
+    scored: bool [], the view was scored; False adds nothing (s_hat_d is
+      then a placeholder).
   Returns:
     The updated statistics. A non-finite score (possible only under jit,
-    where it cannot raise) leaves the statistics unchanged.
+    where it cannot raise; train.fit raises on it at the next log step)
+    leaves the statistics unchanged.
   """
   _check_score(s_hat_d)
-  ok = jnp.isfinite(s_hat_d)
+  ok = jnp.logical_and(scored, jnp.isfinite(s_hat_d))
   gain = beta * jnp.maximum(0.0, jnp.where(ok, s_hat_d, 0.0) - NEUTRAL_SCORE)
   dtype = stats.acc.dtype
   v = jnp.where(ok, visible.astype(dtype), 0.0)
@@ -90,9 +118,9 @@ def accumulate(stats: densify.SemanticStats, visible: jax.Array,
                        n=stats.n + v)
 
 
-def accumulate_pixel(stats: densify.SemanticStats, evidence: jax.Array,
+def accumulate_pixel(stats: SemanticStats, evidence: jax.Array,
                      contribution: jax.Array, visible: jax.Array,
-                     due: jax.Array) -> densify.SemanticStats:
+                     due: jax.Array) -> SemanticStats:
   """Localized evidence: acc += sum_i w_ij m_i, weight += sum_i w_ij.
 
   s_j = acc_j / weight_j is then the share of Gaussian j's blending weight,
@@ -126,14 +154,14 @@ def agreement(render: jax.Array, photo: jax.Array,
   return jnp.clip(1.0 - err / tolerance, 0.0, 1.0)
 
 
-def normalized_scores(stats: densify.SemanticStats) -> jax.Array:
+def normalized_scores(stats: SemanticStats) -> jax.Array:
   """Eq. 10: s_j = acc_j / weight_j (= n_j for visibility), 0 unseen."""
   seen = stats.weight > 0
   return jnp.where(seen, stats.acc / jnp.where(seen, stats.weight, 1.0),
                    0.0)
 
 
-def opacity_loss(stats: densify.SemanticStats, opacity_logits: jax.Array,
+def opacity_loss(stats: SemanticStats, opacity_logits: jax.Array,
                  alive: jax.Array, weight: float) -> jax.Array:
   """Eqs. 11-12: lambda_c * mean over alive j of stop_grad(s_j) * alpha_j."""
   s = jax.lax.stop_gradient(normalized_scores(stats))
@@ -142,7 +170,7 @@ def opacity_loss(stats: densify.SemanticStats, opacity_logits: jax.Array,
   return weight * jnp.sum(jnp.where(alive, s * alpha, 0.0)) / count
 
 
-def prune_masks(stats: densify.SemanticStats, opacity_logits: jax.Array,
+def prune_masks(stats: SemanticStats, opacity_logits: jax.Array,
                 alive: jax.Array, *, tau: float, n_min: float,
                 alpha_min: float, min_weight: float = 0.0
                 ) -> tuple[jax.Array, jax.Array]:
@@ -198,6 +226,6 @@ def guard_prune(semantic_mask: jax.Array, visibility_mask: jax.Array,
   return semantic_mask & keep, visibility_mask & keep, guarded
 
 
-def state_bytes(stats: densify.SemanticStats) -> int:
+def state_bytes(stats: SemanticStats) -> int:
   """Bytes of the per-slot semantic arrays (three float32 per slot)."""
   return int(sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(stats)))

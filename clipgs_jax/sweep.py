@@ -20,6 +20,7 @@ import numpy as np
 from clipgs_jax import checkpoint
 from clipgs_jax import cli
 from clipgs_jax import config as config_lib
+from clipgs_jax import fileio
 from clipgs_jax import guidance
 from clipgs_jax import metrics as metrics_lib
 from clipgs_jax import plots
@@ -217,7 +218,7 @@ def _demo_outputs(workdir: str, cfgs: dict, metrics: dict,
           "num_gaussians": m["num_gaussians"]}
       for k, m in metrics.items()}
   summary["view"] = names[view]
-  checkpoint.write_json(os.path.join(workdir, "comparison.json"), summary)
+  fileio.write_json(os.path.join(workdir, "comparison.json"), summary)
   return summary
 
 

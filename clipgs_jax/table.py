@@ -6,7 +6,7 @@ import os
 import platform
 from typing import NamedTuple
 
-from clipgs_jax import checkpoint
+from clipgs_jax import fileio
 from clipgs_jax import config as config_lib
 from clipgs_jax import run as run_lib
 
@@ -228,13 +228,13 @@ def write_outputs(folder: str, stem: str, settings: dict, rows: list[dict],
   """folder/stem.json ({"settings", "rows"}) and folder/stem.md, atomically.
   """
   os.makedirs(folder, exist_ok=True)
-  checkpoint.write_json(os.path.join(folder, stem + ".json"),
+  fileio.write_json(os.path.join(folder, stem + ".json"),
                         {"settings": settings, "rows": rows})
 
   def write(tmp):
     with open(tmp, "w") as f:
       f.write(text)
-  checkpoint.atomic_write(os.path.join(folder, stem + ".md"), write, ".md")
+  fileio.atomic_write(os.path.join(folder, stem + ".md"), write, ".md")
 
 
 def by_scene(results: list[RowResult]) -> dict[str, list[RowResult]]:

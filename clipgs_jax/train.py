@@ -1,11 +1,10 @@
-"""Training state, the pure train step, test-set evaluation and the host loop."""
+"""Training state, the pure train step and `fit`, the training loop."""
 
 import dataclasses
 import functools
 import logging
 import math
 import os
-import time
 from typing import Any
 
 import flax.struct
@@ -15,21 +14,19 @@ import numpy as np
 import optax
 
 from clipgs_jax import camera as camera_lib
-from clipgs_jax import checkpoint
 from clipgs_jax import config as config_lib
 from clipgs_jax import densify
-from clipgs_jax import evaluation
 from clipgs_jax import gaussians
 from clipgs_jax import guidance
 from clipgs_jax import initialize
 from clipgs_jax import losses
+from clipgs_jax import loop
 from clipgs_jax import metrics as metrics_lib
 from clipgs_jax import optim
 from clipgs_jax import project
 from clipgs_jax import rasterize
 from clipgs_jax import semantic as semantic_lib
 from clipgs_jax import sh
-from clipgs_jax.data import scene as scene_lib
 
 _log = logging.getLogger(__name__)
 
@@ -58,7 +55,7 @@ class TrainState:
   alive: jax.Array
   opt_state: Any
   densify: densify.DensifyStats
-  semantic: densify.SemanticStats
+  semantic: semantic_lib.SemanticStats
   step: jax.Array
   key: jax.Array
 
@@ -113,7 +110,7 @@ def init_state(cfg: config_lib.Config, params: gaussians.GaussianParams,
       params=params, alive=alive,
       opt_state=make_optimizer(cfg).init(params),
       densify=densify.DensifyStats.zeros(capacity),
-      semantic=densify.SemanticStats.zeros(capacity),
+      semantic=semantic_lib.SemanticStats.zeros(capacity),
       step=jnp.zeros((), jnp.int32),
       key=jax.random.key(cfg.train.seed))
 
@@ -165,7 +162,7 @@ def train_step(state: TrainState, batch: Batch, scorer=None, *,
   num_views, height, width = batch.images.shape[:3]
   step = state.step
   view = view_index(state.key, step, num_views)
-  cam = scene_lib.camera_at(batch.cameras, view)
+  cam = camera_lib.camera_at(batch.cameras, view)
   target = batch.images[view]
   bg = background(state.key, step, cfg)
   degree = sh.active_degree(step, cfg.densify.sh_degree_every,
@@ -234,8 +231,7 @@ def train_step(state: TrainState, batch: Batch, scorer=None, *,
       evidence = reproduced
     semantic_stats = semantic_lib.accumulate_pixel(
         state.semantic, evidence, weight, out.visible, due)
-    metrics.update(map_mean=jnp.where(due, jnp.mean(evidence_map), jnp.nan),
-                   view=view)
+    metrics.update(map_mean=jnp.mean(evidence_map), view=view, scored=due)
   elif scorer is not None:
     metrics["semantic_loss"] = terms["semantic_loss"]
     weight = None if sem.weighting == "visibility" else out.contribution
@@ -307,87 +303,20 @@ def initial_state(cfg: config_lib.Config, scene) -> TrainState:
   return init_state(cfg, params, alive)
 
 
-@dataclasses.dataclass
-class FitResult:
-  """What `fit` returns.
-
-  Attributes:
-    state: the final TrainState.
-    cfg: the resolved config the run used.
-    curve: list of {step, seconds, test_psnr}.
-    train_seconds: wall time of the training loop, compilation included,
-      evaluation and checkpoint writing excluded.
-    log: the metrics fetched at each logging step (host floats), with the
-      counts of the most recent densify (num_cloned, num_split,
-      num_pruned, num_unplaced) once one has run.
-    scores: semantic guidance only: {step, view, s_hat_d, s_hat_s} of every
-      scored step (s_hat_s None where the scorer has none).
-    prune_events: semantic guidance only: {step, num_alive_before,
-      num_pruned_semantic, num_pruned_visibility, num_refused, guarded,
-      histogram} per prune.
-    pruned: semantic guidance only: numpy GaussianParams of the rows the
-      semantic rule removed, as they were when removed (None if none were;
-      rows removed before a resume are not kept).
-  """
-  state: TrainState
-  cfg: config_lib.Config
-  curve: list[dict[str, float]]
-  train_seconds: float
-  log: list[dict[str, float]]
-  scores: list[dict[str, Any]]
-  prune_events: list[dict[str, Any]]
-  pruned: gaussians.GaussianParams | None = None
-
-
-def _check_finite(step: int, values: dict[str, float]) -> None:
-  bad = [k for k, v in values.items() if not math.isfinite(v)]
-  if bad:
-    raise FloatingPointError(
-        f"train: non-finite {', '.join(bad)} at step {step}; lower the "
-        "learning rates or check the input images and cameras.")
-
-
-def _grow_if_needed(state: TrainState, cfg: config_lib.Config
-                    ) -> TrainState:
-  """Host-side: doubles C (up to max_capacity) when the next densify asks
-  for more clones/splits than there are free slots."""
-  requested, free = (int(x) for x in jax.device_get(
-      densify.make_count_requests(cfg)(state)))
-  capacity = state.capacity
-  if requested <= free or capacity >= cfg.gaussians.max_capacity:
-    return state
-  new = capacity
-  while new - (capacity - free) < requested and new < cfg.gaussians.max_capacity:
-    new = min(2 * new, cfg.gaussians.max_capacity)
-  _log.info("step %d: capacity %d -> %d (%d requests, %d free); the train "
-            "step recompiles once", int(state.step), capacity, new,
-            requested, free)
-  return densify.resize(state, new)
-
-
-def _finite_or_none(x) -> float | None:
-  x = float(x)
-  return x if math.isfinite(x) else None
-
-
 def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
         resume: bool = False, progress: bool = True,
-        stop_after: int | None = None) -> FitResult:
+        stop_after: int | None = None) -> loop.FitResult:
   """Trains on scene.train, tracking test PSNR on scene.test.
 
-  Each step runs the jitted train step; after the steps that `densify.due`
-  names it runs the jitted densify (growing the capacity first, on the
-  host, if free slots would run out) and the opacity reset. A test
-  evaluation at step N sees the model before step N's densify/reset; a
-  checkpoint at step N is written after them. The host waits
-  for the device only every log_every steps (metrics, non-finite check),
-  before each densify (two counts that decide on capacity growth),
-  at evaluations (every eval_every steps and at the end; the time they
-  take is excluded from the curve's seconds) and at checkpoints
-  (workdir/checkpoint.npz, every checkpoint_every steps and at the end).
-  With semantic guidance, the semantic prune (guidance.prune_due) runs
-  before densify/reset and its counts are fetched; each step's scores stay
-  on the device until the next log step.
+  Each step runs the jitted train step, then the host hooks of `loop`, in
+  this order: a test evaluation (every eval_every steps and at the end;
+  its time is excluded from the curve's seconds), the semantic prune
+  (guidance.prune_due), densify with capacity growth and the opacity reset
+  (densify.due), the log (every log_every steps: metrics fetched and
+  checked for non-finite values) and the checkpoint (workdir/
+  checkpoint.npz, every checkpoint_every steps and at the end). So an
+  evaluation at step N sees the model before step N's housekeeping and a
+  checkpoint at step N after it.
 
   Args:
     cfg: the config; scene-dependent fields are resolved from `scene`.
@@ -407,160 +336,45 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
   os.makedirs(workdir, exist_ok=True)
   ckpt_path = os.path.join(workdir, CHECKPOINT_NAME)
   batch = make_batch(scene.train)
-  state = initial_state(cfg, scene)
-  curve: list[dict[str, float]] = []
-  scores: list[dict[str, Any]] = []
-  prune_events: list[dict[str, Any]] = []
-  pruned: list[gaussians.GaussianParams] = []   # numpy rows per prune event
-  train_seconds = 0.0
-  if resume and os.path.exists(ckpt_path):
-    checkpoint.check_resumable(ckpt_path, cfg)
-    state, meta = checkpoint.restore(ckpt_path, state)
-    curve = list(meta["extra"].get("curve", []))
-    train_seconds = float(meta["extra"].get("train_seconds", 0.0))
-    scores = list(meta["extra"].get("scores", []))
-    prune_events = list(meta["extra"].get("prune_events", []))
-    _log.info("resumed from %s at step %d", ckpt_path, int(state.step))
-  elif resume:
-    _log.info("no checkpoint at %s; starting from step 0", ckpt_path)
-
+  state, flog = loop.restore(initial_state(cfg, scene), ckpt_path, cfg,
+                             resume)
   step_fn = make_train_step(cfg)
-  densify_fn = densify.make_densify(cfg)
-  reset_fn = densify.make_reset_opacity(cfg)
-  prune_fn = guidance.make_prune(cfg)
-  densify_key = jax.random.fold_in(state.key, _DENSIFY_STREAM)
   total = cfg.train.steps
-  end = total if stop_after is None else min(total, stop_after)
   start = int(state.step)
-  log: list[dict[str, float]] = []
-  pending: list[tuple[int, dict[str, jax.Array]]] = []   # unfetched scores
-  per_step_keys = guidance.per_step_keys(cfg.semantic)
-
-  def flush_scores() -> None:
-    for step, values in jax.device_get(pending):
-      if math.isfinite(float(values[per_step_keys[0]])):
-        scores.append({"step": step, "view": int(values["view"])} | {
-            k: _finite_or_none(values[k]) for k in per_step_keys[:-1]})
-    pending.clear()
-
-  def eval_point(step: int) -> None:
-    result = evaluation.evaluate(state.params, state.alive, scene.test,
-                                 cfg, psnr_only=True)
-    curve.append({"step": step, "seconds": train_seconds,
-                  "test_psnr": result["mean/psnr"]})
-    _log.info("step %d: test PSNR %.3f after %.1f s of training, %d alive",
-              step, result["mean/psnr"], train_seconds,
-              int(jnp.sum(state.alive)))
-
-  def save() -> None:
-    flush_scores()
-    checkpoint.save(ckpt_path, state, cfg,
-                    extra={"curve": curve, "train_seconds": train_seconds,
-                           "scores": scores, "prune_events": prune_events})
-
-  def semantic_prune(state: TrainState, step: int) -> TrainState:
-    """Eq. 13 through the guard; keeps the removed rows for the mask IoU."""
-    params_before = jax.device_get(state.params)
-    state, info = prune_fn(state)
-    info = jax.device_get(info)
-    rows = np.nonzero(info.pop("pruned_semantic"))[0]
-    pruned.append(jax.tree.map(lambda x: x[rows], params_before))
-    event = {"step": step} | {k: np.asarray(v).tolist()
-                              for k, v in info.items()}
-    prune_events.append(event)
-    if event["guarded"]:
-      _log.warning(
-          "step %d: semantic prune REFUSED: it would remove %d of %d "
-          "Gaussians, more than max_prune_fraction = %g; nothing removed. "
-          "The threshold is below the scores of most of the scene.", step,
-          event["num_refused"], event["num_alive_before"],
-          cfg.semantic.max_prune_fraction)
-    else:
-      _log.info("step %d: semantic prune removed %d (s_j > tau) + %d "
-                "(rarely seen, faint) of %d", step,
-                event["num_pruned_semantic"],
-                event["num_pruned_visibility"], event["num_alive_before"])
-    return state
-
-  has_test = len(scene.test.images) > 0
-  if start == 0 and has_test and cfg.train.eval_every:
-    eval_point(0)
-  bar = None
+  ctx = loop.Context(
+      cfg=cfg, scene=scene, ckpt_path=ckpt_path,
+      end=total if stop_after is None else min(total, stop_after),
+      densify_key=jax.random.fold_in(state.key, _DENSIFY_STREAM))
+  if start == 0 and cfg.train.eval_every and loop.eval_due(0, ctx):
+    flog = loop.eval_point(state, flog, 0, ctx)
   if progress:
     import tqdm  # pylint: disable=g-import-not-at-top
-    bar = tqdm.tqdm(total=total, initial=start, dynamic_ncols=True,
-                    mininterval=1.0)
-  tic = time.perf_counter()
-  last_metrics, last_info = None, None
+    ctx = dataclasses.replace(ctx, bar=tqdm.tqdm(
+        total=total, initial=start, dynamic_ncols=True, mininterval=1.0))
+  flog = loop.start_clock(flog)
   try:
-    for step in range(start + 1, end + 1):   # `step` = steps done after
-      state, last_metrics = step_fn(state, batch, scorer)
-      if scorer is not None:
-        pending.append((step - 1, {k: last_metrics[k]
-                                   for k in per_step_keys}))
-      if bar is not None:
-        bar.update(1)
-      # Evaluate the result of the optimisation steps, before this step's
+    for step in range(start + 1, ctx.end + 1):   # `step` = steps done after
+      state, metrics = step_fn(state, batch, scorer)
+      flog = loop.record_step(flog, step, metrics, ctx)
+      # Evaluate the optimisation steps' result before this step's
       # housekeeping (as 3DGS reports); a densify would show a transient.
-      if has_test and (step == total or (
-          cfg.train.eval_every and step % cfg.train.eval_every == 0)):
-        jax.block_until_ready(state)
-        train_seconds += time.perf_counter() - tic
-        eval_point(step)
-        tic = time.perf_counter()
+      if loop.eval_due(step, ctx):
+        flog = loop.evaluate(state, flog, step, ctx)
       # The semantic prune reads the trained opacities and statistics, so
-      # it runs before this step's densify (whose children start at n = 0)
-      # and opacity reset (which would put every alpha under alpha_min).
+      # it runs before the densify (whose children start at n = 0) and the
+      # opacity reset (which would put every alpha under alpha_min).
       if guidance.prune_due(step, cfg):
-        state = semantic_prune(state, step)
-      do_densify, do_reset = densify.due(step, cfg)
-      if do_densify:
-        state = _grow_if_needed(state, cfg)
-        state, last_info = densify_fn(
-            state, jax.random.fold_in(densify_key, step))
-      if do_reset:
-        state = reset_fn(state)
-      if step == end or (cfg.train.log_every
-                         and step % cfg.train.log_every == 0):
-        flush_scores()
-        values = {k: float(v) for k, v in
-                  jax.device_get(last_metrics).items()
-                  if k not in per_step_keys}
-        if last_info is not None:
-          values.update({k: float(v) for k, v in
-                         jax.device_get(last_info).items()})
-        _check_finite(step, values)
-        if values.get("num_overflow", 0) > 0:
-          # Inexact render: the view's tile/Gaussian intersections did not
-          # fit the buffer of tiles x tile_budget pairs.
-          _log.warning(
-              "step %d: %d tile-list entries dropped (the view's "
-              "intersections exceed tiles x render.tile_budget = %d per "
-              "tile; longest tile list %d); raise RenderConfig.tile_budget",
-              step, int(values["num_overflow"]), cfg.render.tile_budget,
-              int(values["max_tile_count"]))
-        values["step"] = step
-        log.append(values)
-        if bar is not None:
-          bar.set_postfix(loss=f"{values['loss']:.4f}",
-                          psnr=f"{values['psnr']:.2f}",
-                          n=int(values["num_alive"]), refresh=False)
+        state, flog = loop.semantic_prune(state, flog, step, ctx)
+      state, flog = loop.densify(state, flog, step, ctx)
+      if loop.log_due(step, ctx):
+        flog = loop.log(flog, step, ctx)
       # Checkpoint after the housekeeping, so a resume continues exactly.
-      if step == end or (cfg.train.checkpoint_every
-                         and step % cfg.train.checkpoint_every == 0):
-        jax.block_until_ready(state)
-        train_seconds += time.perf_counter() - tic
-        save()
-        tic = time.perf_counter()
+      if loop.checkpoint_due(step, ctx):
+        flog = loop.save_checkpoint(state, flog, ctx)
   finally:
-    if bar is not None:
-      bar.close()
+    if ctx.bar is not None:
+      ctx.bar.close()
   jax.block_until_ready(state)
   if start >= total:
     _log.info("checkpoint is already at step %d >= %d steps", start, total)
-  flush_scores()
-  pruned_params = (jax.tree.map(lambda *x: np.concatenate(x), *pruned)
-                   if pruned else None)
-  return FitResult(state=state, cfg=cfg, curve=curve,
-                   train_seconds=train_seconds, log=log, scores=scores,
-                   prune_events=prune_events, pruned=pruned_params)
+  return loop.result(state, cfg, loop.flush_scores(flog, ctx))

@@ -12,11 +12,6 @@ def tree_select(cond: jax.Array, a, b):
   return jax.tree.map(select, a, b)
 
 
-def tree_take(tree, idx: jax.Array):
-  """Gathers rows `idx` from every leaf (out-of-range indices are clipped)."""
-  return jax.tree.map(lambda x: jnp.take(x, idx, axis=0, mode="clip"), tree)
-
-
 def tree_index_set(tree, idx: jax.Array, values):
   """Writes rows `values` at `idx` in every leaf; out-of-range idx are dropped.
 

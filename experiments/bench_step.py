@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from clipgs_jax import blend
+from clipgs_jax import camera
 from clipgs_jax import checkpoint
 from clipgs_jax import config
 from clipgs_jax import gaussians
@@ -89,7 +90,7 @@ def _stand_in(params, alive, n, seed=0):
 
 def bench(cfg, scene, batch, params, alive):
   state = train.init_state(cfg, params, alive)
-  cam = scene_lib.camera_at(batch.cameras, _VIEW.value)
+  cam = camera.camera_at(batch.cameras, _VIEW.value)
   target = batch.images[_VIEW.value]
   rcfg = cfg.render
   grid = blend.Grid(int(cam.width), int(cam.height), rcfg.tile_budget,

@@ -19,6 +19,7 @@ from absl import logging
 
 from clipgs_jax import checkpoint
 from clipgs_jax import cli
+from clipgs_jax import fileio
 from clipgs_jax import ply
 from clipgs_jax import run as run_lib
 from clipgs_jax import train
@@ -72,7 +73,7 @@ def main(argv):
   if not FLAGS.dry_run:
     stored["test"] = new
     stored["test_source"] = source
-    checkpoint.write_json(metrics_path, stored)
+    fileio.write_json(metrics_path, stored)
     logging.info("updated %s", metrics_path)
 
 

@@ -190,7 +190,7 @@ def make_grid(bench: str, scene_runs: str, out_path: str, views: int = 3,
   summary = {"rows": cols, "titles": titles, "views": []}
   for k, i in enumerate(picked):
     gt = test.images[i]
-    j = nearest_train_view(scene_lib.camera_at(test.cameras, i),
+    j = nearest_train_view(camera.camera_at(test.cameras, i),
                            train.cameras)
     head = (lambda t: t + "\n") if k == 0 else (lambda t: "")
     _panel(axes[k, 0], train.images[j], head(INPUT_TITLE) + train.names[j])

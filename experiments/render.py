@@ -32,8 +32,8 @@ import numpy as np
 from clipgs_jax import checkpoint
 from clipgs_jax import cli
 from clipgs_jax import config as config_lib
-from clipgs_jax import densify
 from clipgs_jax import evaluation
+from clipgs_jax import fileio
 from clipgs_jax import run as run_lib
 from clipgs_jax import semantic
 from clipgs_jax import train
@@ -54,7 +54,7 @@ def _define_flags() -> None:
   flags.mark_flag_as_required("workdir")
 
 
-def select_transient(stats: densify.SemanticStats, alive, tau: float
+def select_transient(stats: semantic.SemanticStats, alive, tau: float
                      ) -> np.ndarray:
   """bool [C], alive Gaussians whose normalized score s_j exceeds tau.
 
@@ -165,7 +165,7 @@ def render_masks(workdir: str, tau: float | None = None) -> dict | None:
     with open(metrics_path) as f:
       metrics = json.load(f)
   metrics["mask_iou"] = block
-  checkpoint.write_json(metrics_path, metrics)
+  fileio.write_json(metrics_path, metrics)
   skipped = len(alphas) - block["num_views_scored"]
   mean = "n/a" if block["mean"] is None else f"{block['mean']:.4f}"
   print(f"mask IoU (alpha > {evaluation.MASK_ALPHA_THRESHOLD}): mean {mean} "

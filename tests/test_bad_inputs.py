@@ -28,6 +28,7 @@ from absl.testing import absltest
 from clipgs_jax import checkpoint
 from clipgs_jax import cli
 from clipgs_jax import config
+from clipgs_jax import fileio
 from clipgs_jax import gaussians
 from clipgs_jax import ply
 from clipgs_jax import train
@@ -263,7 +264,7 @@ class BadInputTest(_InProcess):
   def test_failure_after_workdir_creation_removes_it(self):
     # A run that fails after creating its workdir, before any checkpoint.
     def fail():
-      checkpoint.write_json(os.path.join(self.workdir, "run.json"), {})
+      fileio.write_json(os.path.join(self.workdir, "run.json"), {})
       raise FloatingPointError("train: non-finite loss at step 3; lower the "
                                "learning rates")
     self.assert_one_line(fail, says=("non-finite loss",))

@@ -13,8 +13,10 @@ from absl.testing import absltest
 from clipgs_jax import checkpoint
 from clipgs_jax import config
 from clipgs_jax import densify
+from clipgs_jax import fileio
 from clipgs_jax import gaussians
 from clipgs_jax import optim
+from clipgs_jax import semantic
 from clipgs_jax import train
 from test_train import synthetic_scene, TEST_CFG  # pylint: disable=g-bad-import-order
 
@@ -31,7 +33,7 @@ def _state(capacity=16, seed=0):
       opt_state=optim.map_rows(
           state.opt_state, capacity,
           lambda x: jnp.asarray(rng.normal(size=x.shape), x.dtype)),
-      semantic=densify.SemanticStats(
+      semantic=semantic.SemanticStats(
           acc=jnp.asarray(rng.random(capacity), jnp.float32),
           weight=jnp.asarray(rng.random(capacity), jnp.float32),
           n=jnp.arange(capacity, dtype=jnp.float32)),
@@ -86,7 +88,7 @@ class RoundTripTest(absltest.TestCase):
         f.write(b"partial")
       raise RuntimeError("disk full")
     with self.assertRaisesRegex(RuntimeError, "disk full"):
-      checkpoint.atomic_write(path, failing_write, ".npz")
+      fileio.atomic_write(path, failing_write, ".npz")
     # The old file is intact and no temporary file is left behind.
     self.assertEqual(os.listdir(directory), ["ckpt.npz"])
     restored, _ = checkpoint.restore(path, _state(seed=3))

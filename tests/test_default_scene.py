@@ -117,7 +117,7 @@ def test_objects_persist_over_consecutive_views(scene_dir, manifest, loaded):
       assert (description in view["transients"]) == (k in run), (obj, k)
     inside = 0
     for k in run:
-      cam = scene.camera_at(loaded.train.cameras, k)
+      cam = camera.camera_at(loaded.train.cameras, k)
       x = np.asarray(cam.rotation) @ _anchor(obj) + np.asarray(
           cam.translation)
       u, v = int(cam.fx * x[0] / x[2] + cam.cx), int(
@@ -174,7 +174,7 @@ def test_clean_split(scene_dir, tmp_path):
 def test_cameras_look_at_the_scene_upright(loaded, split):
   views = getattr(loaded, split)
   for i in range(len(views)):
-    cam = scene.camera_at(views.cameras, i)
+    cam = camera.camera_at(views.cameras, i)
 
     def project(p):
       x = np.asarray(cam.rotation) @ p + np.asarray(cam.translation)

@@ -12,6 +12,7 @@ from clipgs_jax import densify
 from clipgs_jax import gaussians
 from clipgs_jax import optim
 from clipgs_jax import project
+from clipgs_jax import semantic
 from clipgs_jax import sh
 from clipgs_jax import train
 
@@ -37,7 +38,7 @@ def _tag_state(state, tags):
                              lambda x: x.at[_first(x)].set(tags))
   return state.replace(
       params=params, opt_state=opt_state,
-      semantic=densify.SemanticStats(acc=tags, weight=tags + 0.0,
+      semantic=semantic.SemanticStats(acc=tags, weight=tags + 0.0,
                                      n=tags + 0.0))
 
 

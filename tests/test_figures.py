@@ -39,7 +39,7 @@ class PiecesTest(absltest.TestCase):
   def test_nearest_train_view_by_centre(self):
     train = _cameras([[0, 0, 0], [1, 0, 0], [0, 5, 0], [3, 3, 0]],
                      [0.0, np.pi / 2, np.pi, -np.pi / 2])
-    test = scene_lib.camera_at(_cameras([[2.6, 2.4, 0]], [np.pi]), 0)
+    test = camera.camera_at(_cameras([[2.6, 2.4, 0]], [np.pi]), 0)
     # Centre (2.6, 2.4, 0) is nearest (3, 3, 0); the translations alone
     # (differently rotated centres) would pick view 0 instead.
     self.assertEqual(figures.nearest_train_view(test, train), 3)

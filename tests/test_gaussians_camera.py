@@ -79,13 +79,13 @@ class CameraTest(parameterized.TestCase):
 
 class TreeUtilTest(parameterized.TestCase):
 
-  def test_select_take_set(self):
+  def test_select_and_set(self):
     tree = {"a": jnp.arange(4.0), "b": jnp.arange(8.0).reshape(4, 2)}
     other = jax.tree.map(jnp.zeros_like, tree)
     sel = tree_util.tree_select(jnp.array([True, False, True, False]), tree,
                                 other)
     np.testing.assert_array_equal(sel["b"], [[0, 1], [0, 0], [4, 5], [0, 0]])
-    taken = tree_util.tree_take(tree, jnp.array([3, 0]))
+    taken = jax.tree.map(lambda x: x[jnp.array([3, 0])], tree)
     np.testing.assert_array_equal(taken["a"], [3.0, 0.0])
     # Index 4 is out of range (the nonzero fill value): nothing is written.
     put = tree_util.tree_index_set(tree, jnp.array([1, 4]), taken)

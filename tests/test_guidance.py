@@ -8,6 +8,7 @@ import sys
 import textwrap
 
 import chex
+import flax.struct
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -17,12 +18,22 @@ from absl.testing import parameterized
 from clipgs_jax import config
 from clipgs_jax import densify
 from clipgs_jax import guidance
+from clipgs_jax import semantic
 from clipgs_jax import train
 from test_densify import CFG as DENSIFY_CFG  # pylint: disable=g-bad-import-order
 from test_densify import _drive, _make_state, _row_leaves, _tag_state  # pylint: disable=g-bad-import-order
 from test_train import CompileCounter, TEST_CFG, synthetic_scene  # pylint: disable=g-bad-import-order
 
 ORACLE = config.SemanticConfig(scorer="oracle")
+
+
+@flax.struct.dataclass
+class _NanScorer:
+  """A broken image-level scorer: NaN for every view."""
+
+  def score(self, image, view):
+    del image, view
+    return {k: jnp.float32(jnp.nan) for k in guidance.SCORE_KEYS}
 
 
 def _cfg(**semantic_fields):
@@ -42,7 +53,7 @@ def _state_with_stats(acc, n, opacity, alive):
       alive=jnp.asarray(alive),
       params=state.params.replace(
           opacity_logits=jnp.asarray(logits, jnp.float32)),
-      semantic=densify.SemanticStats(acc=jnp.asarray(acc, jnp.float32),
+      semantic=semantic.SemanticStats(acc=jnp.asarray(acc, jnp.float32),
                                      weight=jnp.asarray(n, jnp.float32),
                                      n=jnp.asarray(n, jnp.float32)))
 
@@ -140,18 +151,19 @@ class ScorerTest(absltest.TestCase):
     masks = np.zeros((1, 2, 2), bool)
     masks[0, 0, 0] = True                       # f = 0.25
     scorer = guidance.OracleScorer(masks=jnp.asarray(masks), saturation=0.5)
-    stats = densify.SemanticStats.zeros(3)
+    stats = semantic.SemanticStats.zeros(3)
     visible = jnp.array([True, False, True])
     image = jnp.zeros((2, 2, 3))
     fn = jax.jit(guidance.score_and_accumulate, static_argnums=(7,))
-    # Step 2: before accumulate_start -> unchanged, NaN scores.
+    # Step 2: before accumulate_start -> unchanged, not scored.
     out, scores = fn(stats, image, visible, None, jnp.int32(0), jnp.int32(2),
                      scorer, sem)
     chex.assert_trees_all_equal(out, stats)
-    self.assertTrue(np.isnan(scores["s_hat_d"]))
+    self.assertFalse(scores["scored"])
     # Step 3: s_hat_d = 0.5 + 0.5 * 0.25 / 0.5 = 0.75; gain 0.1 * 0.25.
     out, scores = fn(stats, image, visible, None, jnp.int32(0), jnp.int32(3),
                      scorer, sem)
+    self.assertTrue(scores["scored"])
     self.assertAlmostEqual(float(scores["s_hat_d"]), 0.75, places=6)
     np.testing.assert_allclose(out.acc, [0.025, 0.0, 0.025], rtol=1e-6)
     np.testing.assert_array_equal(out.n, [1, 0, 1])
@@ -171,7 +183,11 @@ class PruneTest(parameterized.TestCase):
     opacity = [0.5, 0.05, 0.05, 0.5, 0.5]
     alive = [True, True, True, True, False]
     state = _state_with_stats(acc, n, opacity, alive)
+    before = jax.device_get(state.params)
     state, info = guidance.prune(state, cfg=cfg)
+    # The parameters stay, pruned rows included: fit gathers the removed
+    # rows after the prune (loop.semantic_prune).
+    chex.assert_trees_all_equal(state.params, before)
     # Row 0: semantic. Row 2: n = 0 < 10 and alpha 0.05 < 0.1: visibility.
     # Row 1: n = 10 is not < 10. Row 3: alpha 0.5. Row 4 was dead.
     np.testing.assert_array_equal(state.alive, [False, True, False, True,
@@ -234,7 +250,7 @@ class PruneTest(parameterized.TestCase):
       n = np.where(rng.random(64) < 0.2, 1.0, 2.0 * tags)
       acc = np.where(n == 1.0, tags, 0.0)
       n = jnp.asarray(np.where(host.alive, n, 0.0), jnp.float32)
-      state = state.replace(semantic=densify.SemanticStats(
+      state = state.replace(semantic=semantic.SemanticStats(
           acc=jnp.asarray(acc, jnp.float32), weight=n, n=n))
       before = jax.device_get(state)
       state, info = prune_fn(state)
@@ -393,7 +409,7 @@ class WiredStepTest(absltest.TestCase):
                      scorer=guidance.make_scorer(sem, scene), progress=False)
 
   def test_guard_refuses_a_prune_that_deletes_the_scene(self):
-    with self.assertLogs("clipgs_jax.train", "WARNING") as logs:
+    with self.assertLogs("clipgs_jax.loop", "WARNING") as logs:
       result = self._fully_cluttered_fit()
     event, = result.prune_events
     self.assertTrue(event["guarded"])
@@ -423,6 +439,19 @@ class WiredStepTest(absltest.TestCase):
     cfg = dataclasses.replace(TEST_CFG, semantic=ORACLE)
     with self.assertRaisesRegex(ValueError, "needs a"):
       train.fit(cfg, scene, self.create_tempdir().full_path, progress=False)
+
+
+  def test_a_nan_score_stops_the_run(self):
+    # Steps 0 and 1 do not score (their placeholders are never checked);
+    # step 2 scores NaN, which the log at step 4 reports with its step.
+    sem = dataclasses.replace(ORACLE, accumulate_start=2)
+    cfg = dataclasses.replace(TEST_CFG, semantic=sem, train=dataclasses.replace(
+        TEST_CFG.train, steps=4, log_every=4, eval_every=0))
+    with self.assertRaisesRegex(
+        FloatingPointError, r"non-finite s_hat_d at step 2; the 'oracle' "
+        r"scorer returned it for training view \d"):
+      train.fit(cfg, _masked_scene(), self.create_tempdir().full_path,
+                scorer=_NanScorer(), progress=False)
 
 
 class ClipScorerTest(absltest.TestCase):

@@ -59,7 +59,9 @@ class PartitionTest(absltest.TestCase):
     grads = jax.tree.map(lambda x: jnp.arange(1, x.size + 1, dtype=x.dtype
                                               ).reshape(x.shape), self.params)
     _, state = self.tx.update(grads, state, self.params)
-    zeroed = optim.zero_rows(state, jnp.array([1, 3, 5]), 5)   # 5: dropped
+    idx = jnp.array([1, 3, 5])                                 # 5: dropped
+    zeroed = optim.map_rows(state, 5,
+                            lambda x: x.at[idx].set(0, mode="drop"))
     for field in optim.FIELDS:
       mu, nu = optim.moments(zeroed, field)
       mu0, nu0 = optim.moments(state, field)

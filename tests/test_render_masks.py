@@ -14,8 +14,9 @@ import pytest
 
 from clipgs_jax import checkpoint
 from clipgs_jax import config as config_lib
-from clipgs_jax import densify
 from clipgs_jax import evaluation
+from clipgs_jax import fileio
+from clipgs_jax import semantic
 from clipgs_jax import train
 from clipgs_jax.data import default_scene
 from clipgs_jax.data import scene as scene_lib
@@ -42,7 +43,7 @@ def _read_u8(path):
 
 def test_select_transient():
   n = jnp.array([1.0, 1.0, 2.0, 0.0])
-  stats = densify.SemanticStats(acc=jnp.array([0.02, 0.01, 0.05, 0.0]),
+  stats = semantic.SemanticStats(acc=jnp.array([0.02, 0.01, 0.05, 0.0]),
                                 weight=n, n=n)
   alive = np.array([True, True, False, True])
   # s = [0.02, 0.01, 0.025, 0 (n = 0)]; slot 2 is dead.
@@ -93,16 +94,16 @@ def saved_run(tmp_path_factory):
   state = train.initial_state(cfg, scene)
   c = state.capacity
   high = jnp.arange(c) < c // 2
-  state = state.replace(semantic=densify.SemanticStats(
+  state = state.replace(semantic=semantic.SemanticStats(
       acc=jnp.where(high, HIGH, LOW).astype(jnp.float32),
       weight=jnp.ones((c,), jnp.float32), n=jnp.ones((c,), jnp.float32)))
   checkpoint.save(str(workdir / train.CHECKPOINT_NAME), state, cfg, extra={})
-  checkpoint.write_json(str(workdir / "run.json"), {
+  fileio.write_json(str(workdir / "run.json"), {
       "scene": os.path.abspath(scene_path), "embedded_scene": True,
       "downscale": DOWNSCALE, "train_split": "clutter", "preset": "smoke"})
-  checkpoint.write_json(str(workdir / "config.json"), config_lib.to_dict(cfg))
-  checkpoint.write_json(str(workdir / "metrics.json"),
-                        {"test": {"psnr": 12.5}})
+  fileio.write_json(str(workdir / "config.json"), config_lib.to_dict(cfg))
+  fileio.write_json(str(workdir / "metrics.json"),
+                    {"test": {"psnr": 12.5}})
   expected = int(np.sum(np.asarray(state.alive & high)))
   return workdir, scene, expected
 
@@ -166,8 +167,8 @@ def test_bad_workdir(tmp_path):
     render.render_masks(str(missing))
   with pytest.raises(app.UsageError, match="run.json is missing"):
     render.render_masks(str(tmp_path))
-  checkpoint.write_json(str(tmp_path / "run.json"), {})
-  checkpoint.write_json(str(tmp_path / "config.json"), {})
+  fileio.write_json(str(tmp_path / "run.json"), {})
+  fileio.write_json(str(tmp_path / "config.json"), {})
   with pytest.raises(app.UsageError, match="checkpoint.npz is missing"):
     render.render_rgb(str(tmp_path))
 

@@ -72,7 +72,7 @@ def test_every_eighth_split(tmp_path):
   assert s.point_colors.dtype == np.float32
   # 3DGS's cameras_extent: 1.1 x the largest distance of a training camera
   # centre from the mean centre (centres lie on a radius-2 circle).
-  centres = np.stack([camera.camera_center(scene.camera_at(s.train.cameras, i))
+  centres = np.stack([camera.camera_center(camera.camera_at(s.train.cameras, i))
                       for i in range(15)])
   np.testing.assert_allclose(np.linalg.norm(centres - [1, 2, 3], axis=1), 2,
                              rtol=1e-5)
@@ -207,18 +207,18 @@ def test_masks(tmp_path):
 def test_camera_at(tmp_path):
   write_scene(tmp_path / "s", [f"img{i}.png" for i in range(4)])
   cams = _load(tmp_path / "s").train.cameras
-  one = scene.camera_at(cams, 1)
+  one = camera.camera_at(cams, 1)
   camera.validate(one)
   np.testing.assert_array_equal(one.rotation, cams.rotation[1])
   np.testing.assert_array_equal(one.fx, cams.fx[1])
 
   @jax.jit
   def centre(cams, i):
-    return camera.camera_center(scene.camera_at(cams, i), xnp=jnp)
+    return camera.camera_center(camera.camera_at(cams, i), xnp=jnp)
 
   for i in range(3):
     np.testing.assert_allclose(centre(cams, jnp.int32(i)),
-                               camera.camera_center(scene.camera_at(cams, i)),
+                               camera.camera_center(camera.camera_at(cams, i)),
                                atol=1e-5)
 
 

@@ -5,14 +5,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from clipgs_jax import densify
 from clipgs_jax import semantic
 
 
 def _stats(acc, n, weight=None):
   """Statistics; weight defaults to n (visibility weighting)."""
   n = jnp.asarray(n, jnp.float32)
-  return densify.SemanticStats(
+  return semantic.SemanticStats(
       acc=jnp.asarray(acc, jnp.float32),
       weight=n if weight is None else jnp.asarray(weight, jnp.float32), n=n)
 
@@ -147,7 +146,7 @@ class NormalizeLossPruneTest(parameterized.TestCase):
     np.testing.assert_array_equal(vis, [True, False])
 
   def test_pixel_evidence_is_a_probability(self):
-    stats = densify.SemanticStats.zeros(3)
+    stats = semantic.SemanticStats.zeros(3)
     # Row 0 lies fully on transient pixels, row 1 half, row 2 unseen.
     evidence = jnp.array([2.0, 0.5, 0.0])
     contribution = jnp.array([2.0, 1.0, 0.0])
@@ -194,5 +193,5 @@ class NormalizeLossPruneTest(parameterized.TestCase):
     self.assertFalse(bool(out_vis.any()))
 
   def test_three_float32_per_slot(self):
-    self.assertEqual(semantic.state_bytes(densify.SemanticStats.zeros(1000)),
+    self.assertEqual(semantic.state_bytes(semantic.SemanticStats.zeros(1000)),
                      12000)

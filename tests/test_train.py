@@ -5,6 +5,7 @@ pytest process compiles the train step once for both files.
 """
 
 import dataclasses
+import functools
 import os
 
 import jax
@@ -17,9 +18,9 @@ from clipgs_jax import config
 from clipgs_jax import densify
 from clipgs_jax import evaluation
 from clipgs_jax import gaussians
+from clipgs_jax import loop
 from clipgs_jax import sh
 from clipgs_jax import train
-from clipgs_jax.data import scene as scene_lib
 
 TEST_CFG = config.Config(
     gaussians=config.GaussiansConfig(capacity=256, max_capacity=256,
@@ -78,7 +79,7 @@ def synthetic_scene(num=48, size=32, num_train=8, num_test=2, seed=0):
   stacked = jax.tree.map(lambda *x: np.stack(x), *cams)
   render = evaluation._render_fn(TEST_CFG.render)
   images = np.stack([
-      np.asarray(render(params, alive, scene_lib.camera_at(stacked, i),
+      np.asarray(render(params, alive, camera.camera_at(stacked, i),
                         jnp.zeros(3), jnp.int32(0))[0])
       for i in range(total)])
 
@@ -146,7 +147,7 @@ class ViewAndBackgroundTest(absltest.TestCase):
 
   def test_boundary_errors(self):
     with self.assertRaisesRegex(FloatingPointError, "non-finite loss"):
-      train._check_finite(7, {"loss": float("nan"), "psnr": 1.0})
+      loop.check_finite(7, {"loss": float("nan"), "psnr": 1.0})
     scene = synthetic_scene(num=4, size=16, num_train=2, num_test=1)
     bad = dataclasses.replace(scene.train, images=scene.train.images[:, :8])
     with self.assertRaisesRegex(ValueError, "cameras are 16x16"):
@@ -155,6 +156,23 @@ class ViewAndBackgroundTest(absltest.TestCase):
       train.resolve(TEST_CFG, dataclasses.replace(scene, extent=0.0))
     with self.assertRaisesRegex(ValueError, "resolve"):
       train.init_state(TEST_CFG, *gaussians.empty(4, 1))
+
+
+  def test_a_perfect_render_gives_finite_step_metrics(self):
+    # No Gaussian alive, a black background and black photos: the render
+    # equals the target exactly. PSNR is capped at -10 log10(MIN_MSE) =
+    # 100 dB instead of +inf, so the loop's finiteness check passes.
+    scene = synthetic_scene(num=4, size=16, num_train=2, num_test=1)
+    cfg = train.resolve(TEST_CFG, scene)
+    state = train.init_state(cfg, *gaussians.empty(8, 1))
+    black = dataclasses.replace(
+        scene.train, images=np.zeros_like(scene.train.images))
+    _, metrics = jax.jit(functools.partial(train.train_step, cfg=cfg))(
+        state, train.make_batch(black))
+    values = {k: float(v) for k, v in jax.device_get(metrics).items()}
+    self.assertAlmostEqual(values["psnr"], 100.0, places=3)
+    self.assertEqual(values["l1"], 0.0)
+    loop.check_finite(1, values)
 
 
 class EndToEndTest(absltest.TestCase):

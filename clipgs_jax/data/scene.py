@@ -3,8 +3,6 @@
 import dataclasses
 import os
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from clipgs_jax import camera
@@ -67,22 +65,6 @@ class Scene:
   point_colors: np.ndarray
   extent: float
   path: str
-
-
-def camera_at(cameras: camera.Camera, i) -> camera.Camera:
-  """The i-th camera of stacked cameras.
-
-  Args:
-    cameras: camera.Camera with a leading [V] axis on its array fields.
-    i: int, or an int32 [] array that may be traced under jit.
-
-  Returns:
-    camera.Camera with unbatched fields (numpy for a Python int and numpy
-    fields, jax arrays otherwise).
-  """
-  if isinstance(i, (int, np.integer)) and isinstance(cameras.fx, np.ndarray):
-    return jax.tree.map(lambda x: x[i], cameras)
-  return jax.tree.map(lambda x: jnp.take(jnp.asarray(x), i, axis=0), cameras)
 
 
 def _split_names(names, train_split: str, sparse_dir: str):
