@@ -28,10 +28,19 @@ from clipgs_jax import rasterize
 from clipgs_jax import train
 from clipgs_jax.data import scene as scene_lib
 
-# Stand-in of a densified model: opacity logit spread (mostly 0.05-0.95)
-# and the jitter of a resampled point, in units of its kNN scale.
+# Stand-in of a densified model (and the frustum scene): opacity logit
+# spread (mostly 0.05-0.95); the jitter of a resampled point, in units of
+# its kNN scale.
 STAND_IN_OPACITY_STD = 1.5
 STAND_IN_JITTER = 0.5
+# Frustum scene: focal length per image side (a ~64 degree field of view),
+# depth range, spread of the log anisotropy and of the colours.
+FRUSTUM_FOCAL = 0.8
+FRUSTUM_DEPTH = (2.0, 8.0)
+FRUSTUM_ANISOTROPY = 0.5
+FRUSTUM_COLOR_STD = 0.5
+# Step stages: the loss's D-SSIM weight (the paper's lambda = 0.2).
+DSSIM_WEIGHT = 0.2
 # Semantic overhead: every variant starts past the paper schedule's starts
 # (accumulation, opacity loss), so the scorer and the loss run.
 SEMANTIC_START_STEP = 5000
@@ -77,23 +86,26 @@ def frustum_scene(n: int, width: int, height: int, r_lo: float, r_hi: float,
     (GaussianParams, bool [N] alive, camera.Camera at the origin).
   """
   rng = np.random.default_rng(seed)
-  focal = 0.8 * max(width, height)
+  focal = FRUSTUM_FOCAL * max(width, height)
   cam = camera.Camera.create(np.eye(3), np.zeros(3), focal, focal, width / 2,
                              height / 2, width, height)
-  z = rng.uniform(2.0, 8.0, n)
+  z = rng.uniform(*FRUSTUM_DEPTH, n)
   u = rng.uniform(0, width, n)
   v = rng.uniform(0, height, n)
   means = np.stack([(u - width / 2) * z / focal, (v - height / 2) * z / focal,
                     z], -1)
   radius = rng.uniform(r_lo, r_hi, n)
   sigma = radius / 3 * z / focal                      # world std dev
-  aniso = np.exp(rng.uniform(-0.5, 0.5, (n, 3)))
+  aniso = np.exp(rng.uniform(-FRUSTUM_ANISOTROPY, FRUSTUM_ANISOTROPY,
+                             (n, 3)))
   params = gaussians.GaussianParams(
       means=jnp.asarray(means, jnp.float32),
       log_scales=jnp.asarray(np.log(sigma[:, None] * aniso), jnp.float32),
       quats=jnp.asarray(rng.normal(size=(n, 4)), jnp.float32),
-      opacity_logits=jnp.asarray(rng.normal(0.0, 1.5, n), jnp.float32),
-      sh_dc=jnp.asarray(rng.normal(0, 0.5, (n, 3)), jnp.float32),
+      opacity_logits=jnp.asarray(rng.normal(0.0, STAND_IN_OPACITY_STD, n),
+                                 jnp.float32),
+      sh_dc=jnp.asarray(rng.normal(0, FRUSTUM_COLOR_STD, (n, 3)),
+                        jnp.float32),
       sh_rest=jnp.zeros((n, 0, 3), jnp.float32))
   return params, jnp.ones(n, bool), cam
 
@@ -252,7 +264,7 @@ def step_stages(cfg: config_lib.Config, batch, params, alive, view: int,
   timed("blend_bwd", bwd, splats, tables, color, depth, trans, n_contrib,
         *cot)
   timed("loss_fwd_bwd", jax.jit(jax.grad(
-      lambda x: losses.photometric(x, target, 0.2)[0])),
+      lambda x: losses.photometric(x, target, DSSIM_WEIGHT)[0])),
         jnp.zeros(target.shape))
   tx = train.make_optimizer(cfg)
   timed("adam", jax.jit(lambda g, o, p: tx.update(g, o, p)), state.params,
@@ -304,11 +316,11 @@ def semantic_overhead(scene_path: str, downscale: int, *,
   Times, in one process on the same state and views, the jitted train step
   of: vanilla (guidance off); oracle (oracle scorer every step, opacity
   loss on; scenes with masks only); clip/k=K (CLIP scorer with random
-  weights, scoring every K-th step). Each is compiled and warmed up over one full scoring
-  cycle, then timed round-robin (one step each in turn, so a change in
-  load shifts them all alike) for `steps` steps. (The former "off"
-  variant, a CLIP scorer without distractor prompts, is now rejected by
-  guidance.validate and was dropped.)
+  weights, scoring every K-th step). Each is compiled and warmed up over
+  one full scoring cycle, then timed round-robin (one step each in turn,
+  so a change in load shifts them all alike) for `steps` steps. (The
+  former "off" variant, a CLIP scorer without distractor prompts, is now
+  rejected by guidance.validate and was dropped.)
 
   Returns:
     One dict per variant: mean wall / CPU ms per step and the overhead
