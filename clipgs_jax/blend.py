@@ -343,7 +343,7 @@ def blend_autodiff(grid, splats, tables, pix, pix_inside, emap=None):
   `while_loop` cannot be reverse-differentiated, so every tile walks the
   first K = `tile_budget` entries of its list in lockstep (entries past K
   are dropped here) and autodiff stores every round's intermediates. It
-  exists to measure what the custom VJP saves (bench_rasterizer.py) and as
+  exists to measure what the custom VJP saves (bench.py) and as
   a second gradient check; training never uses it.
   """
   gauss, start, count = tables

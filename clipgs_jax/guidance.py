@@ -276,7 +276,7 @@ def prune_due(step: int, cfg: config_lib.Config) -> bool:
 
   Never after the last step, as densification (densify.due): what crossed
   tau since the last prune stays in the final model, down-weighted by the
-  opacity loss, and `experiments/render.py --masks` can still show it.
+  opacity loss, and `experiments/report.py --report=masks` can still show it.
   """
   sem = cfg.semantic
   since = step - sem.prune_start

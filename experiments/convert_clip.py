@@ -12,7 +12,6 @@ of our .npz files. The variant is inferred from the tensor shapes unless
 
 import json
 
-from absl import app
 from absl import flags
 import jax
 
@@ -33,8 +32,7 @@ flags.mark_flags_as_required(['src', 'dst'])
 
 
 def main(argv):
-  if len(argv) > 1:
-    raise app.UsageError(f'Unexpected arguments: {argv[1:]}')
+  cli.no_arguments(argv)
   config, params = weights.load(_SRC.value, _VARIANT.value)
   weights.save_npz(_DST.value, config, params)
   print(json.dumps({

@@ -270,9 +270,9 @@ def test_place_deeper_when_the_run_moves_far():
 def test_cli_persistent(built, tmp_path):
   root, _ = built
   out = tmp_path / "cli"
-  cmd = [sys.executable, str(ROOT / "experiments" /
-                             "make_transient_benchmark.py"),
-         f"--scene={root / 'scene'}", f"--distractors={root / 'photos'}",
+  cmd = [sys.executable, str(ROOT / "experiments" / "prepare.py"),
+         "--prepare=benchmark", f"--clean_scene={root / 'scene'}",
+         f"--distractors={root / 'photos'}",
          f"--out={out}", "--seed=1", "--fraction=1", "--mode=persistent",
          "--persist_views=4"]
   env = dict(os.environ, PYTHONPATH=str(ROOT), JAX_PLATFORMS="cpu")

@@ -1,21 +1,16 @@
-"""experiments/figures.py: nearest view, PSNR, and the grid and curve PNGs."""
+"""clipgs_jax.figures: nearest view, PSNR, and the grid and curve PNGs."""
 
 import json
 import os
-import pathlib
-import sys
 
 from absl.testing import absltest
 import numpy as np
 
 from clipgs_jax import camera
+from clipgs_jax import figures
 from clipgs_jax.data import default_scene
 from clipgs_jax.data import images
 from clipgs_jax.data import scene as scene_lib
-
-_REPO = pathlib.Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(_REPO / "experiments"))
-import figures  # pylint: disable=g-import-not-at-top,wrong-import-position
 
 DOWNSCALE = 2           # the default scene's 128x96 views become 64x48
 
@@ -39,11 +34,12 @@ class PiecesTest(absltest.TestCase):
   def test_nearest_train_view_by_centre(self):
     train = _cameras([[0, 0, 0], [1, 0, 0], [0, 5, 0], [3, 3, 0]],
                      [0.0, np.pi / 2, np.pi, -np.pi / 2])
-    test = camera.camera_at(_cameras([[2.6, 2.4, 0]], [np.pi]), 0)
+    test = _cameras([[2.6, 2.4, 0]], [np.pi])
+    centre = camera.camera_center(test)[0]
     # Centre (2.6, 2.4, 0) is nearest (3, 3, 0); the translations alone
     # (differently rotated centres) would pick view 0 instead.
-    self.assertEqual(figures.nearest_train_view(test, train), 3)
-    naive = np.linalg.norm(train.translation - test.translation, axis=-1)
+    self.assertEqual(figures.nearest_train_view(centre, train), 3)
+    naive = np.linalg.norm(train.translation - test.translation[0], axis=-1)
     self.assertEqual(int(np.argmin(naive)), 0)
     # camera_center works on stacked cameras too.
     np.testing.assert_allclose(camera.camera_center(train)[2], [0, 5, 0],
@@ -150,13 +146,15 @@ class FiguresTest(absltest.TestCase):
       figures.make_grid(self.bench, empty, os.path.join(empty, "g.png"))
     _, runs = self._workroot()
     # Renders at downscale 2 do not match the views at downscale 4.
-    with self.assertRaisesRegex(ValueError, "pass the runs' --downscale"):
+    with self.assertRaisesRegex(ValueError, "--figure_downscale"):
       figures.make_grid(self.bench, runs, os.path.join(empty, "g.png"),
                         views=1, downscale=4)
     _write_row(runs, "clip", downscale=4)
     with self.assertRaisesRegex(ValueError, "differ in downscale"):
       figures.runs_downscale(runs, figures.present_rows(runs))
     self.assertFalse(os.path.exists(os.path.join(empty, "g.png")))
+    with self.assertRaisesRegex(FileNotFoundError, "nope is not a folder"):
+      figures.make_figures([os.path.join(empty, "nope")], empty, empty)
 
 
 if __name__ == "__main__":

@@ -1,16 +1,12 @@
-"""experiments/reconstruct.py: input checks, the orbit check, real SfM."""
+"""data.reconstruct: input checks, the orbit check, real SfM."""
 
 import os
-import pathlib
-import sys
 
 import numpy as np
 import pycolmap
 import pytest
 
-_REPO = pathlib.Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(_REPO / "experiments"))
-import reconstruct  # pylint: disable=g-import-not-at-top,wrong-import-position
+from clipgs_jax.data import reconstruct
 import shared_data  # tests/, on sys.path under pytest
 
 DATA = shared_data.DATA
@@ -76,6 +72,7 @@ def test_recovers_the_shared_bird_poses(tmp_path):
   rec = reconstruct.reconstruct(str(photos), str(tmp_path / "scene"),
                                 "SIMPLE_PINHOLE", single_camera=True)
   assert rec.num_reg_images() == 12
+  assert reconstruct.summary(rec).startswith("12 photos registered")
   assert (tmp_path / "scene" / "sparse" / "0" / "images.bin").is_file()
   assert os.path.realpath(tmp_path / "scene" / "images") == str(photos)
   ours = {im.name: im.projection_center() for im in rec.images.values()}

@@ -235,8 +235,8 @@ def test_overwrite(source, tmp_path):
 
 
 @pytest.mark.parametrize("kwargs,needle", [
-    ({"scene": "missing"}, "--scene"),
-    ({"scene": "empty"}, "--scene"),
+    ({"scene": "missing"}, "--clean_scene"),
+    ({"scene": "empty"}, "--clean_scene"),
     ({"photos": "missing"}, "--distractors"),
     ({"photos": "empty"}, "--distractors"),
     ({"photos": "unknown"}, "dog.png"),
@@ -312,9 +312,9 @@ def test_distorted_source_uses_undistorted_frame(tmp_path):
 
 def test_cli(source, tmp_path):
   out = tmp_path / "cli"
-  cmd = [sys.executable, str(ROOT / "experiments" /
-                             "make_transient_benchmark.py"),
-         f"--scene={source['scene']}", f"--distractors={source['photos']}",
+  cmd = [sys.executable, str(ROOT / "experiments" / "prepare.py"),
+         "--prepare=benchmark", f"--clean_scene={source['scene']}",
+         f"--distractors={source['photos']}",
          f"--out={out}", "--seed=1", "--fraction=1", "--per_view=1..2"]
   env = dict(os.environ, PYTHONPATH=str(ROOT), JAX_PLATFORMS="cpu")
   run = subprocess.run(cmd, env=env, capture_output=True, text=True,
@@ -345,9 +345,9 @@ def test_cli_error_is_one_line(source, tmp_path):
   (tmp_path / "photos").mkdir()
   images.write_png(str(tmp_path / "photos" / "dog.png"), np.zeros((4, 4, 3)))
   out = tmp_path / "cli"
-  cmd = [sys.executable, str(ROOT / "experiments" /
-                             "make_transient_benchmark.py"),
-         f"--scene={source['scene']}", f"--distractors={tmp_path / 'photos'}",
+  cmd = [sys.executable, str(ROOT / "experiments" / "prepare.py"),
+         "--prepare=benchmark", f"--clean_scene={source['scene']}",
+         f"--distractors={tmp_path / 'photos'}",
          f"--out={out}", "--seed=1"]
   env = dict(os.environ, PYTHONPATH=str(ROOT), JAX_PLATFORMS="cpu")
   run = subprocess.run(cmd, env=env, capture_output=True, text=True,

@@ -124,17 +124,17 @@ def write_model(sparse_dir: str, renames: dict[str, str],
 
 
 def load_source(path: str, cache_dir: str | None) -> colmap.Model:
-  """The scene's pinhole model; errors name --scene."""
+  """The scene's pinhole model; errors name --clean_scene."""
   if not os.path.isdir(path):
-    raise FileNotFoundError(f"--scene={path} is not a folder; pass a COLMAP "
-                            "scene folder with images/ and sparse/0/.")
+    raise FileNotFoundError(f"--clean_scene={path} is not a folder; pass a "
+                            "COLMAP scene folder with images/ and sparse/0/.")
   try:
     model = colmap.load_model(path, cache_dir=cache_dir)
   except (FileNotFoundError, ValueError) as e:
-    raise ValueError(f"--scene={path}: {e}") from None
+    raise ValueError(f"--clean_scene={path}: {e}") from None
   if len(model.names) < 2:
-    raise ValueError(f"--scene={path} has {len(model.names)} registered "
-                     "image(s); a benchmark needs at least 2.")
+    raise ValueError(f"--clean_scene={path} has {len(model.names)} "
+                     "registered image(s); a benchmark needs at least 2.")
   return model
 
 

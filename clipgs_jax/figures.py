@@ -1,42 +1,20 @@
-"""Paper figures from a benchmark table: a render grid and error curves.
-
-  python experiments/figures.py --workroot=DIR --benchmarks=DIR[,DIR...]
-      --out=DIR [--views=3] [--downscale=K]
-
-For each benchmark (a RobustNeRF-layout scene from
-make_transient_benchmark.py) the runs of experiments/table.py are read from
-workroot/<benchmark basename>/<row>/ and two PNGs are written into --out:
-  <scene>_grid.png   rows: --views test views, evenly spaced over the
-                     sorted test names; columns: the nearest cluttered
-                     training view (by camera centre), the render of each
-                     row present (vanilla, oracle, clip, clean) with its
-                     PSNR against the ground truth, and the ground truth.
-  <scene>_curve.png  test error against training time of the rows present
-                     (experiments/plot_curve.py).
-The oracle row scores views with ground-truth masks; it is labelled as an
-ORACLE scorer, never as CLIP. The views are loaded with load_scene at the
-runs' downscale (run.json), the exact data they were evaluated on.
-"""
+"""Paper figures from a benchmark table's runs: render grids, curves."""
 
 import json
 import os
 
-from absl import app
-from absl import flags
 from absl import logging
 import numpy as np
 
 from clipgs_jax import camera
-from clipgs_jax import cli
+from clipgs_jax import plots
+from clipgs_jax import run as run_lib
 from clipgs_jax.data import images
 from clipgs_jax.data import scene as scene_lib
-from clipgs_jax import plots
 
 import matplotlib  # pylint: disable=g-bad-import-order
 matplotlib.use("Agg")   # files only; no display on the training machines
-import matplotlib.pyplot as plt  # pylint: disable=g-import-not-at-top,wrong-import-position
-
-FLAGS = flags.FLAGS
+import matplotlib.pyplot as plt  # pylint: disable=wrong-import-position
 
 ROWS = ("vanilla", "oracle", "oracle_pixel", "oracle_pixel_masked", "clip",
         "clip_pixel", "clean")
@@ -53,29 +31,17 @@ INPUT_TITLE = "input (nearest training view, with transients)"
 PANEL_INCHES = 2.4
 
 
-def _define_flags() -> None:
-  # Defined only when run as a script, so that tests can import this module.
-  flags.DEFINE_string("workroot", None, "table.py's workroot: runs in "
-                      "workroot/<scene>/<row>.")
-  flags.DEFINE_list("benchmarks", None, "Benchmark scene folders.")
-  flags.DEFINE_string("out", None, "Folder for the PNGs.")
-  flags.DEFINE_integer("views", 3, "Test views (grid rows) per benchmark.")
-  flags.DEFINE_integer("downscale", None, "Image downscale of the renders "
-                       "(default: the runs' run.json).")
-  flags.mark_flags_as_required(["workroot", "benchmarks", "out"])
-
-
-def nearest_train_view(test_cam, train_cams) -> int:
-  """Index of the training camera whose centre is nearest test_cam's.
+def nearest_train_view(centre, train_cams) -> int:
+  """Index of the training camera whose centre is nearest `centre`.
 
   Args:
-    test_cam: camera.Camera, one view (unbatched fields).
+    centre: float [3], a camera centre in world coordinates
+      (camera.camera_center).
     train_cams: camera.Camera with a leading [V] axis (Views.cameras).
 
   Returns:
     int in [0, V).
   """
-  centre = camera.camera_center(test_cam)
   dist = np.linalg.norm(camera.camera_center(train_cams) - centre, axis=-1)
   return int(np.argmin(dist))
 
@@ -103,8 +69,8 @@ def present_rows(scene_runs: str) -> list[str]:
   rows = [r for r in ROWS if os.path.isdir(os.path.join(scene_runs, r))]
   if not rows:
     raise ValueError(f"figures: no row folder ({', '.join(ROWS)}) in "
-                     f"{scene_runs}; run experiments/table.py first or fix "
-                     "--workroot.")
+                     f"{scene_runs}; run the table first or fix "
+                     "--runs.")
   for r in ROWS:
     if r not in rows and r != "clip":
       logging.warning("figures: %s is missing; no %s column or curve.",
@@ -117,14 +83,14 @@ def runs_downscale(scene_runs: str, rows: list[str]) -> int:
   found = {}
   for r in rows:
     try:
-      with open(os.path.join(scene_runs, r, "run.json")) as f:
+      with open(os.path.join(scene_runs, r, run_lib.RUN_JSON)) as f:
         found[r] = int(json.load(f)["downscale"])
     except (OSError, ValueError, KeyError, TypeError):
       logging.warning("figures: no downscale in %s/%s/run.json", scene_runs,
                       r)
   if not found:
     raise ValueError(f"figures: no run.json with a downscale in the rows of "
-                     f"{scene_runs}; pass --downscale.")
+                     f"{scene_runs}; pass --figure_downscale.")
   if len(set(found.values())) > 1:
     raise ValueError(f"figures: the rows of {scene_runs} differ in "
                      f"downscale {found}; their renders are not comparable.")
@@ -146,7 +112,7 @@ def make_grid(bench: str, scene_runs: str, out_path: str, views: int = 3,
 
   Args:
     bench: str, the benchmark scene folder.
-    scene_runs: str, workroot/<scene>, holding the row folders.
+    scene_runs: str, <table root>/<scene>, holding the row folders.
     out_path: str, the PNG to write.
     views: int, number of test views (grid rows).
     downscale: int or None, image downscale (None: the rows' run.json).
@@ -167,7 +133,8 @@ def make_grid(bench: str, scene_runs: str, out_path: str, views: int = 3,
   for r in rows:
     for i in picked:
       stem = os.path.splitext(os.path.basename(test.names[i]))[0]
-      path = os.path.join(scene_runs, r, "renders", "test", stem + ".png")
+      path = os.path.join(scene_runs, r, run_lib.TEST_RENDERS,
+                          stem + ".png")
       if not os.path.isfile(path):
         logging.warning("figures: render %s is missing; %s column left out.",
                         path, r)
@@ -178,10 +145,12 @@ def make_grid(bench: str, scene_runs: str, out_path: str, views: int = 3,
         raise ValueError(
             f"figures: {path} is {image.shape[1]}x{image.shape[0]} but the "
             f"test view at downscale {downscale} is {test.images[i].shape[1]}"
-            f"x{test.images[i].shape[0]}; pass the runs' --downscale.")
+            f"x{test.images[i].shape[0]}; pass the runs' downscale as "
+            "--figure_downscale.")
       renders[r][i] = image
   cols = [r for r in rows if renders[r] is not None]
   titles = [INPUT_TITLE] + [LABELS[r] for r in cols] + ["ground truth"]
+  test_centres = camera.camera_center(test.cameras)   # [V, 3]
   h, w = test.images.shape[1:3]
   fig, axes = plt.subplots(
       len(picked), len(titles), squeeze=False, dpi=150,
@@ -190,8 +159,7 @@ def make_grid(bench: str, scene_runs: str, out_path: str, views: int = 3,
   summary = {"rows": cols, "titles": titles, "views": []}
   for k, i in enumerate(picked):
     gt = test.images[i]
-    j = nearest_train_view(camera.camera_at(test.cameras, i),
-                           train.cameras)
+    j = nearest_train_view(test_centres[i], train.cameras)
     head = (lambda t: t + "\n") if k == 0 else (lambda t: "")
     _panel(axes[k, 0], train.images[j], head(INPUT_TITLE) + train.names[j])
     view = {"test": test.names[i], "input": train.names[j], "psnr": {}}
@@ -215,7 +183,7 @@ def make_curve(scene_runs: str, out_path: str) -> list[str]:
   """
   rows, paths = [], []
   for r in present_rows(scene_runs):
-    path = os.path.join(scene_runs, r, "curve.json")
+    path = os.path.join(scene_runs, r, run_lib.CURVE_JSON)
     if os.path.isfile(path):
       rows.append(r)
       paths.append(path)
@@ -233,6 +201,10 @@ def make_curve(scene_runs: str, out_path: str) -> list[str]:
 def make_figures(benchmarks: list[str], workroot: str, out: str,
                  views: int = 3, downscale: int | None = None) -> list[str]:
   """Grid and curve PNGs of every benchmark; returns the paths written."""
+  for bench in benchmarks:
+    if not os.path.isdir(bench):
+      raise FileNotFoundError(f"benchmark {bench} is not a folder; pass "
+                              "the scene folders the table ran on.")
   written = []
   for bench in benchmarks:
     name = os.path.basename(os.path.normpath(bench))
@@ -244,21 +216,3 @@ def make_figures(benchmarks: list[str], workroot: str, out: str,
     if make_curve(scene_runs, curve):
       written.append(curve)
   return written
-
-
-def main(argv):
-  if len(argv) > 1:
-    raise app.UsageError(f"unexpected arguments {argv[1:]}")
-  if FLAGS.views < 1:
-    raise app.UsageError(f"--views must be positive, got {FLAGS.views}.")
-  for b in FLAGS.benchmarks:
-    if not os.path.isdir(b):
-      raise app.UsageError(f"benchmark {b} is not a folder.")
-  written = make_figures(FLAGS.benchmarks, FLAGS.workroot, FLAGS.out,
-                         FLAGS.views, FLAGS.downscale)
-  print("\n".join(written))
-
-
-if __name__ == "__main__":
-  _define_flags()
-  cli.run(main)

@@ -1,51 +1,31 @@
 """Camera poses and SfM points for a folder of photos, with pycolmap.
 
-  python experiments/reconstruct.py --images=DIR --workdir=DIR
-      [--camera_model=SIMPLE_RADIAL] [--nosingle_camera]
-
 SIFT features, exhaustive matching and *global* mapping (pycolmap's GLOMAP
-pipeline), seeded. Writes DIR/database.db, DIR/sparse/0 and a symlink
-DIR/images -> --images, so DIR is a scene for `train.py --scene=DIR`
-(distorted camera models are undistorted by the loader, as for any scene).
+pipeline), seeded. The scene folder gets database.db, sparse/0 and a
+symlink images -> the photos, so it loads like any COLMAP scene
+(distorted camera models are undistorted by the loader).
 
 Why global mapping: on the shared 98-frame bonsai orbit, incremental
 mapping folds the loop and returns cameras that look *away* from the
 object they all photograph; global mapping recovers the orbit (numbers in
-BUILD_NOTES.md, "Bonsai poses"). The summary printed at the end says how
-many cameras face the centre of the camera positions, the quick check
-that caught it.
+BUILD_NOTES.md, "Bonsai poses"). `facing_fraction` is the quick check that
+caught it.
 """
 
 import os
 import shutil
 import time
 
-from absl import app
-from absl import flags
 from absl import logging
 import numpy as np
 import pycolmap
 
-from clipgs_jax import cli
-
-FLAGS = flags.FLAGS
-
-SEED = 0
+SEED = 0   # feature matching RANSAC and the global mapper
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 
 
-def _define_flags() -> None:
-  flags.DEFINE_string("images", None, "Folder of photos.")
-  flags.DEFINE_string("workdir", None, "Output scene folder (must not hold "
-                      "a sparse/ model yet).")
-  flags.DEFINE_string("camera_model", "SIMPLE_RADIAL",
-                      "COLMAP camera model to estimate.")
-  flags.DEFINE_bool("single_camera", True, "One set of intrinsics shared by "
-                    "every photo (one camera, fixed zoom).")
-  flags.mark_flags_as_required(["images", "workdir"])
-
-
-def check_inputs(image_dir: str, workdir: str, camera_model: str) -> list[str]:
+def check_inputs(image_dir: str, scene_dir: str, camera_model: str
+                 ) -> list[str]:
   """Photo names in `image_dir`; ValueError naming the problem otherwise."""
   if not os.path.isdir(image_dir):
     raise ValueError(f"--images={image_dir}: no such folder; pass the folder "
@@ -56,8 +36,8 @@ def check_inputs(image_dir: str, workdir: str, camera_model: str) -> list[str]:
     raise ValueError(f"--images={image_dir}: {len(names)} photos "
                      f"(extensions {sorted(IMAGE_EXTENSIONS)}); "
                      "structure from motion needs at least 3.")
-  if os.path.exists(os.path.join(workdir, "sparse")):
-    raise ValueError(f"--workdir={workdir} already holds sparse/; delete it "
+  if os.path.exists(os.path.join(scene_dir, "sparse")):
+    raise ValueError(f"--out={scene_dir} already holds sparse/; delete it "
                      "or pick another folder.")
   try:
     pycolmap.CameraModelId(camera_model)
@@ -86,12 +66,12 @@ def facing_fraction(centers: np.ndarray, axes: np.ndarray) -> float:
   return float(np.mean(np.sum(axes * to_mid, axis=1) > 0))
 
 
-def reconstruct(image_dir: str, workdir: str, camera_model: str,
+def reconstruct(image_dir: str, scene_dir: str, camera_model: str,
                 single_camera: bool) -> pycolmap.Reconstruction:
-  """Runs SfM; the finished model appears at workdir/sparse/0 atomically."""
-  names = check_inputs(image_dir, workdir, camera_model)
-  os.makedirs(workdir, exist_ok=True)
-  db = os.path.join(workdir, "database.db")
+  """Runs SfM; the finished model appears at scene_dir/sparse/0 atomically."""
+  names = check_inputs(image_dir, scene_dir, camera_model)
+  os.makedirs(scene_dir, exist_ok=True)
+  db = os.path.join(scene_dir, "database.db")
   if os.path.exists(db):
     os.remove(db)  # A half-built database from an interrupted run.
   reader = pycolmap.ImageReaderOptions()
@@ -106,7 +86,7 @@ def reconstruct(image_dir: str, workdir: str, camera_model: str,
   verification.ransac.random_seed = SEED
   pycolmap.match_exhaustive(db, verification_options=verification)
   logging.info("matching: %.0f s", time.perf_counter() - tic)
-  tmp = os.path.join(workdir, f".tmp-sparse-{os.getpid()}")
+  tmp = os.path.join(scene_dir, f".tmp-sparse-{os.getpid()}")
   shutil.rmtree(tmp, ignore_errors=True)
   os.makedirs(tmp)
   options = pycolmap.GlobalPipelineOptions()
@@ -116,43 +96,30 @@ def reconstruct(image_dir: str, workdir: str, camera_model: str,
   logging.info("mapping: %.0f s", time.perf_counter() - tic)
   if not models:
     shutil.rmtree(tmp, ignore_errors=True)
-    raise RuntimeError(f"pycolmap could not register the photos in "
-                       f"{image_dir} (too few matches between them).")
+    # The photos, not a bug: a ValueError, reported as one line.
+    raise ValueError(f"pycolmap could not register the photos in "
+                     f"{image_dir} (too few matches between them); add "
+                     "photos that overlap more.")
   # multiple_models=False: one model, which the mapper wrote to tmp/<key>.
   (key, rec), = models.items()
   staged = os.path.join(tmp, "sparse")
   os.makedirs(staged)
   os.rename(os.path.join(tmp, str(key)), os.path.join(staged, "0"))
-  os.rename(staged, os.path.join(workdir, "sparse"))
+  os.rename(staged, os.path.join(scene_dir, "sparse"))
   shutil.rmtree(tmp, ignore_errors=True)
-  link = os.path.join(workdir, "images")
+  link = os.path.join(scene_dir, "images")
   if not os.path.lexists(link):
     os.symlink(os.path.abspath(image_dir), link)
   return rec
 
 
-def main(argv):
-  if len(argv) > 1:
-    raise app.UsageError(f"unexpected arguments {argv[1:]}")
-  try:
-    # A failed reconstruction leaves no workdir (or only what was there).
-    with cli.output_dir(FLAGS.workdir, keep="sparse"):
-      rec = reconstruct(FLAGS.images, FLAGS.workdir, FLAGS.camera_model,
-                        FLAGS.single_camera)
-  except ValueError as e:
-    raise app.UsageError(str(e)) from e
-  except RuntimeError as e:     # too few matches: the photos, not a bug
-    raise ValueError(str(e)) from e
+def summary(rec: pycolmap.Reconstruction) -> str:
+  """One line: registered photos, points, reprojection error, the share of
+  cameras facing the centre of the camera positions, the cameras."""
   cams = ", ".join(f"{c.model.name} {np.round(c.params, 4).tolist()}"
                    for c in rec.cameras.values())
   error = rec.compute_mean_reprojection_error()
-  print(f"{rec.num_reg_images()} photos registered, {rec.num_points3D()} "
-        f"points, mean reprojection error {error:.3f} px; cameras facing "
-        f"the centre of the camera positions: "
-        f"{facing_fraction(*centers_and_axes(rec)):.0%}; cameras: {cams}")
-  print(f"scene ready: python experiments/train.py --scene={FLAGS.workdir}")
-
-
-if __name__ == "__main__":
-  _define_flags()
-  cli.run(main)
+  return (f"{rec.num_reg_images()} photos registered, {rec.num_points3D()} "
+          f"points, mean reprojection error {error:.3f} px; cameras facing "
+          f"the centre of the camera positions: "
+          f"{facing_fraction(*centers_and_axes(rec)):.0%}; cameras: {cams}")

@@ -1,12 +1,13 @@
-"""Tests for experiments/render.py: transient-mask selection, IoU, renders."""
+"""clipgs_jax.report: metrics, colour and mask renders of a finished run."""
 
 import dataclasses
 import json
 import os
 import pathlib
+import subprocess
 import sys
+import types
 
-from absl import app
 import jax.numpy as jnp
 import numpy as np
 import OpenImageIO as oiio
@@ -16,15 +17,13 @@ from clipgs_jax import checkpoint
 from clipgs_jax import config as config_lib
 from clipgs_jax import evaluation
 from clipgs_jax import fileio
-from clipgs_jax import semantic
+from clipgs_jax import report
+from clipgs_jax import run as run_lib
 from clipgs_jax import train
 from clipgs_jax.data import default_scene
 from clipgs_jax.data import scene as scene_lib
 
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] /
-                       "experiments"))
-import render  # pylint: disable=g-import-not-at-top,wrong-import-position
-
+ROOT = pathlib.Path(__file__).resolve().parents[1]
 DOWNSCALE = 4      # the embedded scene's 128x96 views become 32x24
 HIGH, LOW = 0.02, 0.01   # s_j of the flagged / other Gaussians; tau 0.015
 
@@ -41,17 +40,18 @@ def _read_u8(path):
   return np.asarray(pixels).reshape(spec.height, spec.width, spec.nchannels)
 
 
-def test_select_transient():
+def test_transient_selection():
   n = jnp.array([1.0, 1.0, 2.0, 0.0])
-  stats = semantic.SemanticStats(acc=jnp.array([0.02, 0.01, 0.05, 0.0]),
+  stats = types.SimpleNamespace(acc=jnp.array([0.02, 0.01, 0.05, 0.0]),
                                 weight=n, n=n)
-  alive = np.array([True, True, False, True])
+  state = types.SimpleNamespace(
+      semantic=stats, alive=jnp.array([True, True, False, True]),
+      params=types.SimpleNamespace(opacity_logits=jnp.zeros(4)))
   # s = [0.02, 0.01, 0.025, 0 (n = 0)]; slot 2 is dead.
-  np.testing.assert_array_equal(
-      render.select_transient(stats, alive, 0.015),
-      [True, False, False, False])
+  np.testing.assert_array_equal(report.transient_selection(state, 0.015),
+                                [True, False, False, False])
   # tau below 0 would take never-scored slots; 0 does not.
-  np.testing.assert_array_equal(render.select_transient(stats, alive, 0.0),
+  np.testing.assert_array_equal(report.transient_selection(state, 0.0),
                                 [True, True, False, False])
 
 
@@ -94,7 +94,7 @@ def saved_run(tmp_path_factory):
   state = train.initial_state(cfg, scene)
   c = state.capacity
   high = jnp.arange(c) < c // 2
-  state = state.replace(semantic=semantic.SemanticStats(
+  state = state.replace(semantic=state.semantic.replace(
       acc=jnp.where(high, HIGH, LOW).astype(jnp.float32),
       weight=jnp.ones((c,), jnp.float32), n=jnp.ones((c,), jnp.float32)))
   checkpoint.save(str(workdir / train.CHECKPOINT_NAME), state, cfg, extra={})
@@ -122,7 +122,9 @@ def _check_pngs(folder, scene, channels):
 def test_render_masks_writes_pngs_and_iou(saved_run):
   workdir, scene, expected = saved_run
   assert expected > 0
-  block = render.render_masks(str(workdir))
+  out = report.render_masks(str(workdir))
+  block = out["mask_iou"]
+  assert out["num_views"] == len(scene.train.names)
   pngs = _check_pngs(workdir / "renders" / "masks", scene, 1)
   assert max(int(p.max()) for p in pngs.values()) > 0
   with open(workdir / "metrics.json") as f:
@@ -141,7 +143,7 @@ def test_render_masks_writes_pngs_and_iou(saved_run):
 
 def test_render_masks_nothing_above_tau(saved_run):
   workdir, scene, _ = saved_run
-  block = render.render_masks(str(workdir), tau=1.0)
+  block = report.render_masks(str(workdir), tau=1.0)["mask_iou"]
   pngs = _check_pngs(workdir / "renders" / "masks", scene, 1)
   assert all(int(p.max()) == 0 for p in pngs.values())
   has_transient = scene.train.masks.any(axis=(1, 2))
@@ -156,34 +158,90 @@ def test_render_masks_nothing_above_tau(saved_run):
 
 def test_render_rgb(saved_run):
   workdir, scene, _ = saved_run
-  render.render_rgb(str(workdir))
+  assert report.render_colour(str(workdir)).endswith("renders/train")
   pngs = _check_pngs(workdir / "renders" / "train", scene, 3)
   assert max(int(p.max()) for p in pngs.values()) > 0
 
 
 def test_bad_workdir(tmp_path):
   missing = tmp_path / "nope"
-  with pytest.raises(app.UsageError, match="not a folder"):
-    render.render_masks(str(missing))
-  with pytest.raises(app.UsageError, match="run.json is missing"):
-    render.render_masks(str(tmp_path))
+  with pytest.raises(FileNotFoundError, match="not a folder"):
+    report.render_masks(str(missing))
+  with pytest.raises(FileNotFoundError, match="run.json is missing"):
+    report.render_masks(str(tmp_path))
   fileio.write_json(str(tmp_path / "run.json"), {})
   fileio.write_json(str(tmp_path / "config.json"), {})
-  with pytest.raises(app.UsageError, match="checkpoint.npz is missing"):
-    render.render_rgb(str(tmp_path))
+  with pytest.raises(FileNotFoundError, match="checkpoint.npz is missing"):
+    report.render_colour(str(tmp_path))
+  with pytest.raises(ValueError, match="source='pl'"):
+    report.recompute_metrics(str(tmp_path), source="pl")
 
 
 def test_render_masks_without_ground_truth(saved_run, monkeypatch):
   workdir, scene, _ = saved_run
-  load_run = render.run_lib.load_run
+  load_run = run_lib.load_run
 
   def without_masks(path):
     run, cfg, loaded = load_run(path)
     train_views = dataclasses.replace(loaded.train, masks=None)
     return run, cfg, dataclasses.replace(loaded, train=train_views)
 
-  monkeypatch.setattr(render.run_lib, "load_run", without_masks)
+  monkeypatch.setattr(run_lib, "load_run", without_masks)
   before = (workdir / "metrics.json").read_text()
-  assert render.render_masks(str(workdir), tau=1.0) is None
+  assert report.render_masks(str(workdir), tau=1.0)["mask_iou"] is None
   _check_pngs(workdir / "renders" / "masks", scene, 1)
   assert (workdir / "metrics.json").read_text() == before
+
+
+def test_recompute_metrics(saved_run):
+  workdir, scene, _ = saved_run
+  with open(workdir / "metrics.json") as f:
+    stored = json.load(f)
+  fileio.write_json(str(workdir / "metrics.json"), stored | {"mark": 1})
+  before = (workdir / "metrics.json").read_text()
+  new, old, source = report.recompute_metrics(str(workdir), dry_run=True)
+  assert (workdir / "metrics.json").read_text() == before
+  assert source == "checkpoint" and old == {"psnr": 12.5}
+  assert new["num_views"] == len(scene.test.names)
+  assert new["lpips_net"] == "alex" and np.isfinite(new["psnr"])
+  with pytest.raises(FileNotFoundError, match="point_cloud.ply is missing"):
+    report.recompute_metrics(str(workdir), source="ply")
+  again, _, _ = report.recompute_metrics(str(workdir))
+  with open(workdir / "metrics.json") as f:
+    metrics = json.load(f)
+  assert metrics["test_source"] == "checkpoint"
+  # As JSON text: LPIPS may be NaN here (no LPIPS weights under tests).
+  drop = lambda d: json.dumps({k: v for k, v in d.items() if k != "seconds"},
+                             sort_keys=True)
+  assert drop(metrics["test"]) == drop(again)
+  # The same Gaussians, rendered twice: the same numbers.
+  assert again["psnr"] == new["psnr"] and again["ssim"] == new["ssim"]
+  assert metrics["mark"] == 1     # the other blocks are kept
+
+
+def _report_cli(*flags):
+  env = dict(os.environ, PYTHONPATH=str(ROOT), JAX_PLATFORMS="cpu")
+  return subprocess.run(
+      [sys.executable, str(ROOT / "experiments" / "report.py"), *flags],
+      capture_output=True, text=True, env=env, check=False, timeout=300)
+
+
+def test_cli_curve(tmp_path):
+  runs = []
+  for name, offset in (("a", 15.0), ("b", 18.0)):
+    folder = tmp_path / name
+    folder.mkdir()
+    fileio.write_json(str(folder / run_lib.CURVE_JSON), [
+        {"step": s, "seconds": s / 10, "test_psnr": offset + s / 100}
+        for s in (0, 100, 200)])
+    runs.append(str(folder))
+  png = tmp_path / "curve.png"
+  proc = _report_cli("--report=curve", f"--runs={','.join(runs)}",
+                     f"--curve_png={png}")
+  assert proc.returncode == 0, proc.stderr
+  assert png.stat().st_size > 1000
+  # Several runs where one is needed: a usage error in one line.
+  proc = _report_cli("--report=masks", f"--runs={','.join(runs)}")
+  assert proc.returncode == 2
+  assert proc.stderr.strip().splitlines()[-1].startswith(
+      "error: --runs=")

@@ -1,0 +1,161 @@
+"""Timings, one JSON line per result: rasterizer, step, clip or semantic.
+
+  python experiments/bench.py --bench=rasterizer [--num_gaussians=10000
+      --sizes=256x256]
+  python experiments/bench.py --bench=step --num_gaussians=0,220000
+  python experiments/bench.py --bench=clip --clip_variant=ViT-B/32
+      --batch_sizes=1,8 [--noencoders --scorers --dense_input_sizes=224,448]
+  python experiments/bench.py --bench=semantic [--timed_steps=40
+      --checkpoint=RUN/checkpoint.npz --score_every=1,10,20]
+
+rasterizer: custom VJP against plain autodiff of the forward, per (N, image
+  size, variant), on Gaussians scattered in the view frustum.
+step: one training step on a real view, stage by stage, at each Gaussian
+  count (0: the scene's SfM points; more: a resampled stand-in of a
+  densified model; --checkpoint: a trained state).
+clip: the CLIP encoders, preprocessing, tokenizer and text cache, and
+  (--scorers) the view scorers, on random weights.
+semantic: step-time overhead of guidance over the vanilla step.
+The library functions (clipgs_jax/benchmark.py, clipgs_jax/clip/
+benchmark.py) document every field.
+"""
+
+import json
+
+from absl import flags
+
+from clipgs_jax import benchmark
+from clipgs_jax import cli
+from clipgs_jax import config as config_lib
+from clipgs_jax.clip import benchmark as clip_benchmark
+from clipgs_jax.clip import dense
+from clipgs_jax.clip import model
+from clipgs_jax.clip import scorer
+from clipgs_jax.data import default_scene
+
+# Per benchmark defaults of the shared flags (None on the command line).
+DEFAULTS = {
+    "rasterizer": dict(num_gaussians=["1000", "10000", "100000"],
+                       repeats=5, tile_budget=0),
+    # 220k: about where a bird ds4 7k-step run ends (BUILD_NOTES: 223k at
+    # 5950).
+    "step": dict(num_gaussians=["0", "220000"], repeats=3, tile_budget=8192,
+                 bench_scene="../shared/data/bird", bench_downscale=4),
+    "clip": dict(repeats=10),
+    "semantic": dict(tile_budget=8192, bench_downscale=1),
+}
+
+_BENCH = flags.DEFINE_enum("bench", None, list(DEFAULTS), "What to time.")
+_NUM = flags.DEFINE_list("num_gaussians", None, "rasterizer: scene sizes N; "
+                         "step: alive counts (0 = the SfM points).")
+_REPEATS = flags.DEFINE_integer("repeats", None, "Timed runs (median); "
+                                "default 5 / 3 / 10 (rasterizer/step/clip).")
+_TILE_BUDGET = flags.DEFINE_integer(
+    "tile_budget", None, "K; rasterizer default 0 = the smallest power of "
+    "two >= the longest tile list; step and semantic 8192.")
+_CHUNK = flags.DEFINE_integer("chunk_size", 32, "B.")
+_LANES = flags.DEFINE_integer("lanes", 0, "Blend lanes; 0 = automatic.")
+_TILE_SIZE = flags.DEFINE_integer("tile_size", 16, "Tile side, pixels.")
+_SIZES = flags.DEFINE_list("sizes", ["256x256", "512x384"],
+                           "rasterizer: image sizes WxH.")
+_VARIANTS = flags.DEFINE_list("variants", ["custom_vjp", "autodiff"],
+                              "rasterizer: custom_vjp and/or autodiff.")
+_RADIUS = flags.DEFINE_list("radius_px", ["2", "20"], "rasterizer: range "
+                            "of projected 3-sigma radii, pixels.")
+_MAX_GIB = flags.DEFINE_float(
+    "max_gib", 12.0, "rasterizer: skip a variant whose compiled forward + "
+    "backward needs more memory than this (GiB).")
+_SCENE = flags.DEFINE_string("bench_scene", None, "step / semantic: scene "
+                             "folder (default: bird / the embedded scene).")
+_DOWNSCALE = flags.DEFINE_integer("bench_downscale", None, "step / semantic: "
+                                  "image downscale (default 4 / 1).")
+_VIEW = flags.DEFINE_integer("view", 0, "step: training view index.")
+_CHECKPOINT = flags.DEFINE_string("checkpoint", None, "step / semantic: a "
+                                  "train.py checkpoint.npz of the scene.")
+_CLIP_VARIANT = flags.DEFINE_enum("clip_variant", model.DEFAULT_VARIANT,
+                                  list(model.VARIANTS), "clip / semantic: "
+                                  "CLIP tower (random weights).")
+_BATCH_SIZES = flags.DEFINE_list("batch_sizes", ["1", "8"],
+                                 "clip: image batch sizes.")
+_WARMUP = flags.DEFINE_integer("warmup", 2, "clip: untimed runs after "
+                               "compilation.")
+_RENDER_SIZE = flags.DEFINE_list("render_size", ["378", "504"], "clip: "
+                                 "height,width of the render to score.")
+_ENCODERS = flags.DEFINE_bool("encoders", True, "clip: time the encoders, "
+                              "preprocess and the text cache.")
+_SCORERS = flags.DEFINE_bool("scorers", False, "clip: time the image-level "
+                             "and dense view scorers.")
+_DENSE_SIZES = flags.DEFINE_list(
+    "dense_input_sizes", [str(scorer.DENSE_INPUT_SIZE)],
+    "clip: dense scorer input sides (multiples of the patch size).")
+_DENSE_READOUTS = flags.DEFINE_list(
+    "dense_readouts", [dense.DEFAULT_READOUT],
+    f"clip: dense readouts, of {dense.READOUTS}.")
+_SCORE_EVERY = flags.DEFINE_list("score_every", ["1", "10", "20"],
+                                 "semantic: CLIP scoring cadences.")
+_TIMED_STEPS = flags.DEFINE_integer("timed_steps", 40, "semantic: timed "
+                                    "steps per variant (a multiple of every "
+                                    "--score_every).")
+flags.mark_flag_as_required("bench")
+
+
+def _value(name: str, flag):
+  return flag.value if flag.value is not None else DEFAULTS[
+      _BENCH.value].get(name)
+
+
+def _ints(values) -> list[int]:
+  return [int(float(x)) for x in values]
+
+
+def _results():
+  what = _BENCH.value
+  repeats = _value("repeats", _REPEATS)
+  budget = _value("tile_budget", _TILE_BUDGET)
+  if what == "rasterizer":
+    for size in _SIZES.value:
+      width, height = (int(s) for s in size.split("x"))
+      for n in _ints(_value("num_gaussians", _NUM)):
+        for variant in _VARIANTS.value:
+          yield benchmark.rasterizer(
+              n, width, height, variant,
+              radius_px=tuple(float(r) for r in _RADIUS.value),
+              tile_budget=budget, chunk_size=_CHUNK.value,
+              lanes=_LANES.value, tile_size=_TILE_SIZE.value,
+              repeats=repeats, max_gib=_MAX_GIB.value)
+  elif what == "step":
+    yield from benchmark.train_step(
+        _value("bench_scene", _SCENE), _value("bench_downscale", _DOWNSCALE),
+        _ints(_value("num_gaussians", _NUM)), view=_VIEW.value,
+        checkpoint_path=_CHECKPOINT.value, repeats=repeats,
+        render=config_lib.RenderConfig(
+            tile_budget=budget, chunk_size=_CHUNK.value, lanes=_LANES.value,
+            tile_size=_TILE_SIZE.value))
+  elif what == "clip":
+    render_hw = tuple(_ints(_RENDER_SIZE.value))
+    if _SCORERS.value:
+      yield from clip_benchmark.scorers(
+          _CLIP_VARIANT.value, render_hw, runs=repeats, warmup=_WARMUP.value,
+          dense_input_sizes=_ints(_DENSE_SIZES.value),
+          dense_readouts=_DENSE_READOUTS.value)
+    if _ENCODERS.value:
+      yield from clip_benchmark.encoders(
+          _CLIP_VARIANT.value, render_hw, runs=repeats, warmup=_WARMUP.value,
+          batch_sizes=_ints(_BATCH_SIZES.value))
+  else:
+    yield from benchmark.semantic_overhead(
+        _SCENE.value or default_scene.ensure_default_scene(),
+        _value("bench_downscale", _DOWNSCALE),
+        score_every=_ints(_SCORE_EVERY.value), steps=_TIMED_STEPS.value,
+        clip_variant=_CLIP_VARIANT.value, tile_budget=budget,
+        checkpoint_path=_CHECKPOINT.value)
+
+
+def main(argv):
+  cli.no_arguments(argv)
+  for result in _results():
+    print(json.dumps(result), flush=True)
+
+
+if __name__ == "__main__":
+  cli.run(main)

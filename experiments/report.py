@@ -1,0 +1,126 @@
+"""What to do with finished run folders: metrics, renders, curves, figures.
+
+  python experiments/report.py --report=metrics --runs=DIR
+      [--gaussians=auto|checkpoint|ply] [--lpips_backbone=alex|vgg]
+      [--dry_run]
+  python experiments/report.py --report=renders --runs=DIR
+  python experiments/report.py --report=masks --runs=DIR [--mask_tau=T]
+  python experiments/report.py --report=curve --runs=DIR1,DIR2
+      --curve_png=curve.png [--labels=a,b] [--x_axis=seconds|step]
+  python experiments/report.py --report=figures --runs=TABLE_ROOT
+      --benchmarks=DIR[,DIR...] --figures_dir=DIR [--views=3]
+      [--figure_downscale=K]
+
+metrics: renders every test view of the run again (the checkpoint, or the
+  PLY when there is none or --gaussians=ply) and replaces the "test" block
+  of metrics.json unless --dry_run; prints new and stored numbers.
+renders: the colour of every training view, DIR/renders/train/<stem>.png.
+masks: the alpha of the alive Gaussians with s_j > tau (tau: the run's
+  semantic.tau unless --mask_tau) as grey DIR/renders/masks/<stem>.png;
+  with ground-truth masks, their IoU goes into metrics.json "mask_iou".
+curve: test MSE (log) against training time of each run's curve.json (a
+  run folder or the curve.json itself).
+figures: per benchmark, a render grid and error curves of the table's
+  runs in TABLE_ROOT/<benchmark name>/<row>/ (clipgs_jax/figures.py).
+"""
+
+import os
+
+from absl import flags
+
+from clipgs_jax import cli
+from clipgs_jax import evaluation
+from clipgs_jax import figures
+from clipgs_jax import plots
+from clipgs_jax import report
+from clipgs_jax import run as run_lib
+
+_REPORT = flags.DEFINE_enum(
+    "report", None, ["metrics", "renders", "masks", "curve", "figures"],
+    "What to make of the runs.")
+_RUNS = flags.DEFINE_list("runs", None, "Run folders written by "
+                          "experiments/train.py (figures: the table's root).")
+_GAUSSIANS = flags.DEFINE_enum("gaussians", "auto", list(report.SOURCES),
+                               "metrics: where the Gaussians come from "
+                               "(auto: the checkpoint if present).")
+_LPIPS = flags.DEFINE_enum("lpips_backbone", None, ["alex", "vgg"],
+                           "metrics: LPIPS backbone (default: the run's).")
+_DRY_RUN = flags.DEFINE_bool("dry_run", False,
+                             "metrics: print only; leave metrics.json.")
+_MASK_TAU = flags.DEFINE_float("mask_tau", None, "masks: score threshold "
+                               "(default: the run's semantic.tau).")
+_CURVE_PNG = flags.DEFINE_string("curve_png", None, "curve: the PNG to write.")
+_LABELS = flags.DEFINE_list("labels", None,
+                            "curve: legend labels (default: run folders).")
+_X_AXIS = flags.DEFINE_enum("x_axis", "seconds", ["seconds", "step"],
+                            "curve: x axis.")
+_BENCHMARKS = flags.DEFINE_list("benchmarks", None,
+                                "figures: benchmark scene folders.")
+_FIGURES_DIR = flags.DEFINE_string("figures_dir", None,
+                                   "figures: folder for the PNGs.")
+_VIEWS = flags.DEFINE_integer("views", 3, "figures: test views (grid rows) "
+                              "per benchmark.")
+_FIGURE_DOWNSCALE = flags.DEFINE_integer(
+    "figure_downscale", None, "figures: image downscale of the renders "
+    "(default: the runs' run.json).")
+flags.mark_flags_as_required(["report", "runs"])
+
+
+def _one_run() -> str:
+  cli.require(len(_RUNS.value) == 1, "runs", ",".join(_RUNS.value),
+              f"names several folders; --report={_REPORT.value} takes one")
+  return _RUNS.value[0]
+
+
+def _metrics() -> None:
+  new, old, source = report.recompute_metrics(
+      _one_run(), _GAUSSIANS.value, _LPIPS.value, _DRY_RUN.value)
+  print(f"source: {source}; {new['num_views']} test views; LPIPS "
+        f"backbone: {new['lpips_net']}")
+  for key in ("psnr", "ssim", "lpips"):
+    before = "-" if old.get(key) is None else f"{old[key]:.4f}"
+    print(f"  {key:6s} now {new[key]:.4f}   stored {before}")
+
+
+def _masks() -> None:
+  out = report.render_masks(_one_run(), _MASK_TAU.value)
+  print(f"wrote {out['num_views']} mask renders of "
+        f"{out['num_gaussians_above_tau']} Gaussians with s_j > tau = "
+        f"{out['tau']:g} to {out['folder']}")
+  block = out["mask_iou"]
+  if block is None:
+    print("the scene has no ground-truth masks: no IoU computed")
+    return
+  mean = "n/a" if block["mean"] is None else f"{block['mean']:.4f}"
+  print(f"mask IoU (alpha > {evaluation.MASK_ALPHA_THRESHOLD}): mean {mean} "
+        f"over {block['num_views_scored']} views; "
+        f"{out['num_views'] - block['num_views_scored']} views left out (no "
+        "transient in the mask or the render); updated metrics.json")
+
+
+def main(argv):
+  cli.no_arguments(argv)
+  what = _REPORT.value
+  if what == "metrics":
+    _metrics()
+  elif what == "renders":
+    print(f"wrote training-view renders to {report.render_colour(_one_run())}")
+  elif what == "masks":
+    _masks()
+  elif what == "curve":
+    cli.require(_CURVE_PNG.value is not None, "curve_png", None,
+                "is needed: pass the PNG to write")
+    plots.plot([os.path.join(r, run_lib.CURVE_JSON) if os.path.isdir(r)
+                else r for r in _RUNS.value], _CURVE_PNG.value,
+               _LABELS.value, _X_AXIS.value)
+  else:
+    cli.require(_BENCHMARKS.value and _FIGURES_DIR.value, "figures_dir",
+                _FIGURES_DIR.value, "and --benchmarks are needed")
+    cli.require(_VIEWS.value >= 1, "views", _VIEWS.value, "must be positive")
+    print("\n".join(figures.make_figures(
+        _BENCHMARKS.value, _one_run(), _FIGURES_DIR.value, _VIEWS.value,
+        _FIGURE_DOWNSCALE.value)))
+
+
+if __name__ == "__main__":
+  cli.run(main)
