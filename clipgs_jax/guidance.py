@@ -179,7 +179,8 @@ def make_scorer(sem: config_lib.SemanticConfig, scene, *,
       raise ValueError(
           "semantic scorer 'oracle' reads ground-truth transient masks, but "
           "this scene has none: add masks/<image stem>.png (white = "
-          "transient) for the training views, or use --semantic=clip|off.")
+          "transient) for the training views, or use "
+          "--config.semantic.scorer=clip|off.")
     if sem.localized:
       return PixelMapScorer(maps=jnp.asarray(masks, jnp.float32))
     return OracleScorer(masks=jnp.asarray(masks, bool),

@@ -200,7 +200,7 @@ class BadInputTest(_InProcess):
   def test_one_pixel_image(self):
     self.write_scene(size=(1, 1))
     self.assert_one_line(self.load, says=("1x1", "at least 11x11",
-                                          "--downscale"))
+                                          "--config.data.downscale"))
 
   def test_empty_points3d_bin(self):
     self.write_scene()

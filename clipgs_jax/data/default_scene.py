@@ -19,9 +19,10 @@ from clipgs_jax.data import raycast
 VERSION = 2
 SEED = 20261122
 # Training steps for this scene in the README main job and in train.py
-# without --steps: clean upper bound 19.94 dB against vanilla 15.20 dB at
-# 700 steps (BUILD_NOTES, "Embedded default scene v2"), and a vanilla and a
-# guided run fit the README's 10 minutes on 2 cores.
+# when --config.train.steps is not set: clean upper bound 19.94 dB against
+# vanilla 15.20 dB at 700 steps (BUILD_NOTES, "Embedded default scene
+# v2"), and a vanilla and a guided run fit the README's 10 minutes on 2
+# cores.
 TRAIN_STEPS = 700
 WIDTH, HEIGHT = 128, 96
 FOCAL = 110.0                 # pixels: about 60 degrees horizontal field

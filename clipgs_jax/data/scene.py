@@ -137,7 +137,7 @@ def _load_views(model: colmap.Model, idx, scene_path: str, downscale: int,
       raise ValueError(
           f"{src} gives a {w}x{h} image at downscale {downscale}; views need "
           f"at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE} pixels (one SSIM "
-          "window); use a smaller --downscale or larger images.")
+          "window); use a smaller --config.data.downscale or larger images.")
     if first is None:
       first = (name, w, h)
     elif (w, h) != first[1:]:
