@@ -4,6 +4,7 @@ import json
 import os
 
 from absl import logging
+from matplotlib import figure
 import numpy as np
 
 from clipgs_jax import camera
@@ -11,10 +12,6 @@ from clipgs_jax import plots
 from clipgs_jax import run as run_lib
 from clipgs_jax.data import images
 from clipgs_jax.data import scene as scene_lib
-
-import matplotlib  # pylint: disable=g-bad-import-order
-matplotlib.use("Agg")   # files only; no display on the training machines
-import matplotlib.pyplot as plt  # pylint: disable=wrong-import-position
 
 ROWS = ("vanilla", "oracle", "oracle_pixel", "oracle_pixel_masked", "clip",
         "clip_pixel", "clean")
@@ -152,10 +149,9 @@ def make_grid(bench: str, scene_runs: str, out_path: str, views: int = 3,
   titles = [INPUT_TITLE] + [LABELS[r] for r in cols] + ["ground truth"]
   test_centres = camera.camera_center(test.cameras)   # [V, 3]
   h, w = test.images.shape[1:3]
-  fig, axes = plt.subplots(
-      len(picked), len(titles), squeeze=False, dpi=150,
-      figsize=(PANEL_INCHES * len(titles),
-               (PANEL_INCHES * h / w + 0.6) * len(picked)))
+  fig = figure.Figure(dpi=150, figsize=(
+      PANEL_INCHES * len(titles), (PANEL_INCHES * h / w + 0.6) * len(picked)))
+  axes = fig.subplots(len(picked), len(titles), squeeze=False)
   summary = {"rows": cols, "titles": titles, "views": []}
   for k, i in enumerate(picked):
     gt = test.images[i]

@@ -3,11 +3,12 @@
 import json
 import os
 
-import matplotlib
-matplotlib.use("Agg")   # files only; no display on the training machines
-import matplotlib.pyplot as plt  # pylint: disable=g-import-not-at-top,wrong-import-position
+# matplotlib.figure, not pyplot: figures that only go to files need no
+# backend, and importing the library never changes the backend of the
+# user's session (a notebook keeps its inline plots).
+from matplotlib import figure
 
-from clipgs_jax import fileio  # pylint: disable=g-import-not-at-top,wrong-import-position
+from clipgs_jax import fileio
 
 
 def _read(path: str) -> list[dict]:
@@ -21,12 +22,9 @@ def _read(path: str) -> list[dict]:
 
 
 def save_figure(fig, out_path: str) -> None:
-  """Lays out `fig`, writes it as a PNG atomically and closes it."""
+  """Lays out `fig` and writes it as a PNG atomically."""
   fig.tight_layout()
-  try:
-    fileio.atomic_write(out_path, fig.savefig, ".png")
-  finally:
-    plt.close(fig)
+  fileio.atomic_write(out_path, fig.savefig, ".png")
 
 
 def plot(curve_paths: list[str], out_path: str,
@@ -35,7 +33,8 @@ def plot(curve_paths: list[str], out_path: str,
   if labels is not None and len(labels) != len(curve_paths):
     raise ValueError(f"plots: {len(labels)} labels for "
                      f"{len(curve_paths)} curves.")
-  fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
+  fig = figure.Figure(figsize=(6, 4), dpi=120)
+  ax = fig.subplots()
   for i, path in enumerate(curve_paths):
     curve = _read(path)
     label = (labels[i] if labels else
@@ -65,8 +64,9 @@ def side_by_side(images, titles: list[str], out_path: str,
     raise ValueError(f"plots.side_by_side: {len(images)} images for "
                      f"{len(titles)} titles.")
   height, width = images[0].shape[:2]
-  fig, axes = plt.subplots(1, len(images), dpi=100, figsize=(
+  fig = figure.Figure(dpi=100, figsize=(
       len(images) * width * scale / 100, height * scale / 100 + 0.5))
+  axes = fig.subplots(1, len(images), squeeze=False)[0]
   for ax, image, title in zip(axes, images, titles):
     ax.imshow(image.clip(0.0, 1.0), interpolation="nearest")
     ax.set_title(title, fontsize=9)

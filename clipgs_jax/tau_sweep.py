@@ -3,13 +3,13 @@
 import json
 import os
 
+from matplotlib import figure
 import numpy as np
 
 from clipgs_jax import config as config_lib
-from clipgs_jax import plots   # selects matplotlib's file-only backend
+from clipgs_jax import plots
 from clipgs_jax import run as run_lib
 from clipgs_jax import table
-import matplotlib.pyplot as plt  # pylint: disable=g-bad-import-order
 
 
 def otsu_threshold(histogram, edges) -> float | None:
@@ -108,13 +108,13 @@ def plot_histograms(events_by_tau: dict[float, dict | None],
     events_by_tau: {tau: the run's prune_events.json dict, or None}.
     out_path: str, the PNG.
   """
-  fig, ax = plt.subplots(figsize=(7, 4), dpi=120)
   first = next((e for e in events_by_tau.values() if e and e["events"]),
                None)
   if first is None:
-    plt.close(fig)
     raise ValueError("tau sweep: no run has a prune event; train longer "
                      "or check semantic.prune_start.")
+  fig = figure.Figure(figsize=(7, 4), dpi=120)
+  ax = fig.subplots()
   edges = np.asarray(first["histogram_edges"])
   e0 = first["events"][0]
   ax.stairs(e0["histogram"], edges, fill=True, alpha=0.3, color="grey",
