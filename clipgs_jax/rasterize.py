@@ -83,11 +83,6 @@ def _untile(x: jax.Array, grid: blend_lib.Grid) -> jax.Array:
   return x[:grid.height, :grid.width]
 
 
-def _cumsum(x: jax.Array) -> jax.Array:
-  """Inclusive 1D prefix sum; jnp.cumsum is 6x slower on XLA:CPU (1M ints)."""
-  return jax.lax.associative_scan(jnp.add, x)
-
-
 def _bin(proj: project_lib.Projected, grid: blend_lib.Grid):
   """Depth-sorted per-tile lists as one sorted array plus tile ranges.
 
@@ -129,7 +124,10 @@ def _bin(proj: project_lib.Projected, grid: blend_lib.Grid):
   order = jnp.argsort(jnp.where(proj.valid, proj.depths, jnp.inf),
                       stable=True).astype(jnp.int32)
   counts = n_tiles[order]
-  ends = _cumsum(counts)
+  # jnp.cumsum, not lax.associative_scan: 3.5x slower to run at 1M ints
+  # (7.5 vs 2.1 ms) but 0.5-0.7 s less to compile per call site, and the
+  # ladder below has one per rung.
+  ends = jnp.cumsum(counts)
   starts = ends - counts
   total = ends[-1]
 
@@ -139,7 +137,7 @@ def _bin(proj: project_lib.Projected, grid: blend_lib.Grid):
     # the last rank whose start is <= m (zero-count ranks share the start
     # of the next rank, so they are never the last).
     marks = jnp.zeros(size, jnp.int32).at[starts].add(1, mode="drop")
-    owner = jnp.clip(_cumsum(marks) - 1, 0, n - 1)                # [size]
+    owner = jnp.clip(jnp.cumsum(marks) - 1, 0, n - 1)                # [size]
     m = jnp.arange(size, dtype=jnp.int32)
     local = m - starts[owner]
     g = order[owner]
