@@ -205,6 +205,25 @@ def _check_evidence_map(evidence_map, cam: camera_lib.Camera) -> None:
         f"{jnp.result_type(evidence_map)}; cast it (e.g. mask.astype(float)).")
 
 
+def _prepare(proj: project_lib.Projected, cam: camera_lib.Camera,
+             cfg: config_lib.RenderConfig):
+  """What both blends need: the tile grid, the splats, the depth-sorted
+  tile lists (gauss, start, count), the tiled pixel centres and which of
+  them lie inside the image, and the overflow and longest-list counts."""
+  for name in ("tile_budget", "chunk_size", "tile_size"):
+    if getattr(cfg, name) < 1:
+      raise ValueError(f"RenderConfig.{name} must be >= 1, got "
+                       f"{getattr(cfg, name)}.")
+  grid = blend_lib.Grid(int(cam.width), int(cam.height), cfg.tile_budget,
+                        cfg.chunk_size, cfg.lanes, cfg.tile_size)
+  pix, pix_inside = _pixel_centers(grid, proj.means2d.dtype)
+  gauss, start, count, num_overflow, max_count = _bin(proj, grid)
+  splats = (proj.means2d, proj.conics, proj.colors, proj.opacities,
+            proj.depths)
+  return (grid, splats, (gauss, start, count), pix, pix_inside,
+          num_overflow, max_count)
+
+
 def rasterize(proj: project_lib.Projected, cam: camera_lib.Camera,
               background: jax.Array, cfg: config_lib.RenderConfig,
               custom_vjp: bool = True,
@@ -218,17 +237,9 @@ def rasterize(proj: project_lib.Projected, cam: camera_lib.Camera,
   sum over pixels of blending weight times map value. Without it the traced
   program is the plain render and `evidence` is None.
   """
-  for name in ("tile_budget", "chunk_size", "tile_size"):
-    if getattr(cfg, name) < 1:
-      raise ValueError(f"RenderConfig.{name} must be >= 1, got "
-                       f"{getattr(cfg, name)}.")
-  grid = blend_lib.Grid(int(cam.width), int(cam.height), cfg.tile_budget,
-                        cfg.chunk_size, cfg.lanes, cfg.tile_size)
+  grid, splats, tables, pix, pix_inside, num_overflow, max_count = (
+      _prepare(proj, cam, cfg))
   dtype = proj.means2d.dtype
-  pix, pix_inside = _pixel_centers(grid, dtype)
-  gauss, start, count, num_overflow, max_count = _bin(proj, grid)
-  splats = (proj.means2d, proj.conics, proj.colors, proj.opacities,
-            proj.depths)
   emap = None
   if evidence_map is not None:
     _check_evidence_map(evidence_map, cam)
@@ -236,10 +247,10 @@ def rasterize(proj: project_lib.Projected, cam: camera_lib.Camera,
                  grid)
   if custom_vjp:
     color, depth, trans, contrib, evidence = blend_lib.blend(
-        grid, *splats, (gauss, start, count), pix, pix_inside, emap)
+        grid, *splats, tables, pix, pix_inside, emap)
   else:
     color, depth, trans, contrib, evidence = blend_lib.blend_autodiff(
-        grid, splats, (gauss, start, count), pix, pix_inside, emap)
+        grid, splats, tables, pix, pix_inside, emap)
   trans = _untile(trans, grid)
   alpha = 1.0 - trans
   image = _untile(color, grid) + trans[..., None] * background.astype(dtype)
@@ -296,17 +307,12 @@ def blend_stats(proj: project_lib.Projected, cam: camera_lib.Camera,
   tile in every round until the longest list ends (the layout this one
   replaced). For benchmarks; never called in training.
   """
-  grid = blend_lib.Grid(int(cam.width), int(cam.height), cfg.tile_budget,
-                        cfg.chunk_size, cfg.lanes, cfg.tile_size)
-  dtype = proj.means2d.dtype
-  pix, inside = _pixel_centers(grid, dtype)
-  gauss, start, count, _, _ = _bin(proj, grid)
-  splats = (proj.means2d, proj.conics, proj.colors, proj.opacities,
-            proj.depths)
+  grid, splats, tables, pix, inside, _, _ = _prepare(proj, cam, cfg)
+  gauss, start, count = tables
   color, depth, trans, n_contrib, _, _, rounds_fwd = blend_lib.forward(
-      grid, splats, (gauss, start, count), pix, inside, None)
+      grid, splats, tables, pix, inside, None)
   _, rounds_bwd = blend_lib.backward(
-      grid, splats, (gauss, start, count), pix, color, depth, trans,
+      grid, splats, tables, pix, color, depth, trans,
       n_contrib, jnp.ones_like(color), jnp.ones_like(depth),
       jnp.ones_like(trans))
   count, n_contrib = np.asarray(count), np.asarray(n_contrib)
