@@ -116,9 +116,11 @@ def photometric(pred: jax.Array, target: jax.Array, lambda_dssim: float,
   Args:
     pred, target: float [H, W, 3].
     lambda_dssim: the D-SSIM share.
-    weight: None, or float [H, W] >= 0 per-pixel weights (loss masking:
-      1 - the transient map); both terms become weighted means. None is
-      the unweighted 3DGS loss, computed exactly as without the argument.
+    weight: None, or float [H, W] in [0, 1], per-pixel weights (loss
+      masking: 1 - the transient map); both terms become weighted means,
+      and where the weight is 0 neither term reads `target` nor sends a
+      gradient to `pred`. None is the unweighted 3DGS loss, computed
+      exactly as without the argument.
   Returns:
     float [] loss and a dict with its "l1" and "ssim" terms.
   """
@@ -131,6 +133,15 @@ def photometric(pred: jax.Array, target: jax.Array, lambda_dssim: float,
     # = 0 (SSIM term 1 - 0 adds a constant, no gradient).
     total = jnp.maximum(jnp.sum(w) * pred.shape[-1], 1e-6)
     l1_term = jnp.sum(w * jnp.abs(pred - target)) / total
-    ssim_term = jnp.sum(w * ssim_map(pred, target, padding="same")) / total
+    # SSIM at a kept pixel reads an 11x11 window that reaches into masked
+    # pixels. Filling both images there with the (stop-gradient) render
+    # makes the term blind to the photo under the mask and sends no
+    # gradient into masked pixels; weighting the map alone does neither
+    # (it pulled renders towards the transient at the mask's border).
+    fill = jax.lax.stop_gradient(pred)
+    pred_seen = w * pred + (1.0 - w) * fill
+    target_seen = w * target + (1.0 - w) * fill
+    ssim_term = jnp.sum(
+        w * ssim_map(pred_seen, target_seen, padding="same")) / total
   loss = (1.0 - lambda_dssim) * l1_term + lambda_dssim * (1.0 - ssim_term)
   return loss, {"l1": l1_term, "ssim": ssim_term}
