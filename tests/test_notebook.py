@@ -9,6 +9,7 @@ import pytest
 
 NOTEBOOK = (pathlib.Path(__file__).resolve().parents[1] / "notebooks"
             / "quickstart.ipynb")
+QUICKSTART_TEST_STEPS = 60
 
 
 # jupyter_client and zmq warn about their own deprecations at import and
@@ -21,6 +22,9 @@ def test_quickstart_runs(tmp_path, monkeypatch):
   assert all(not c.get("outputs") for c in nb.cells
              if c.cell_type == "code"), "strip the notebook's outputs"
   monkeypatch.setenv("JAX_PLATFORMS", "cpu")
+  # Every cell runs; 60 steps instead of the notebook's 300 keep the test
+  # to its compiles (the cells' logic is the same at any length).
+  monkeypatch.setenv("QUICKSTART_STEPS", str(QUICKSTART_TEST_STEPS))
   client = nbclient.NotebookClient(
       nb, timeout=600, kernel_name="python3",
       resources={"metadata": {"path": str(tmp_path)}})
