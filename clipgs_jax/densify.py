@@ -40,8 +40,7 @@ class DensifyStats:
 
   Attributes:
     grad_accum: float [C], sum over views of |d loss / d NDC xy|.
-    denom: float [C], views whose image the splat overlapped (each counted
-      by `accumulate`'s `count`, 1 in 3DGS).
+    denom: float [C], number of views whose image the splat overlapped.
     max_radius: float [C], largest screen radius (pixels) seen.
   """
   grad_accum: Any
@@ -138,8 +137,8 @@ def on_screen(proj: project_lib.Projected, width: int, height: int
 
 
 def accumulate(stats: DensifyStats, grad_means2d: jax.Array,
-               seen: jax.Array, radius: jax.Array, width: int, height: int,
-               count: jax.Array | None = None) -> DensifyStats:
+               seen: jax.Array, radius: jax.Array, width: int, height: int
+               ) -> DensifyStats:
   """Adds one view's positional gradients to the statistics.
 
   Args:
@@ -150,30 +149,14 @@ def accumulate(stats: DensifyStats, grad_means2d: jax.Array,
     width, height: image size; the gradient is converted to normalised
       device coordinates (pixel = (ndc + 1) * size / 2 - 0.5), where the
       3DGS threshold 2e-4 is defined: d/d ndc = d/d pixel * size / 2.
-    count: None (each seen row counts this view once, as in 3DGS), or
-      float [C] in [0, 1], how much of this view counts for each seen row
-      (loss masking: `supervised_share`, so that views whose loss was
-      masked where the row is drawn do not dilute its mean gradient).
   """
   scale = jnp.array([0.5 * width, 0.5 * height], grad_means2d.dtype)
   norm = jnp.linalg.norm(grad_means2d * scale, axis=-1)
-  views = (seen.astype(jnp.float32) if count is None
-           else jnp.where(seen, count.astype(jnp.float32), 0.0))
   return DensifyStats(
       grad_accum=stats.grad_accum + jnp.where(seen, norm, 0.0),
-      denom=stats.denom + views,
+      denom=stats.denom + seen.astype(jnp.float32),
       max_radius=jnp.where(seen, jnp.maximum(stats.max_radius, radius),
                            stats.max_radius))
-
-
-def supervised_share(contribution: jax.Array, evidence: jax.Array
-                     ) -> jax.Array:
-  """float [C] in [0, 1]: the share of each row's blending weight on pixels
-  the masked loss kept, 1 - sum_i w_ij m_i / sum_i w_ij (1 where the row
-  has no weight in the view: it counts as in 3DGS)."""
-  drawn = contribution > 0
-  share = 1.0 - evidence / jnp.where(drawn, contribution, 1.0)
-  return jnp.where(drawn, jnp.clip(share, 0.0, 1.0), 1.0)
 
 
 def _wanted(state, cfg: config_lib.Config):

@@ -202,14 +202,8 @@ def train_step(state: TrainState, batch: Batch, scorer=None, *,
 
   proj = jax.lax.stop_gradient(proj)
   seen = densify.on_screen(proj, width, height) & state.alive
-  # Under loss masking a row's gradient comes from its unmasked pixels
-  # only; its views count by that share, or its mean gradient is diluted
-  # by masked views and it is not split where the masks often cover it.
-  count = (densify.supervised_share(out.contribution, out.evidence)
-           if loss_weight is not None else None)
   stats = densify.accumulate(state.densify, grad2d, seen,
-                             densify.screen_radius(proj), width, height,
-                             count)
+                             densify.screen_radius(proj), width, height)
   metrics = {
       "loss": loss, "l1": terms["l1"], "ssim": terms["ssim"],
       "psnr": metrics_lib.psnr(out.image, target),

@@ -261,21 +261,6 @@ class StatisticsTest(absltest.TestCase):
     np.testing.assert_array_equal(stats.denom, [2, 2, 0])
     np.testing.assert_array_equal(stats.max_radius, [4, 3, 0])
 
-  def test_masked_views_count_by_their_supervised_share(self):
-    # Row 0 drawn half on masked pixels, row 1 all masked, row 2 not
-    # drawn (weight 0: counts as in 3DGS), row 3 unseen.
-    share = densify.supervised_share(jnp.array([2.0, 1.0, 0.0, 0.0]),
-                                     jnp.array([1.0, 1.0, 0.0, 0.0]))
-    np.testing.assert_allclose(share, [0.5, 0.0, 1.0, 1.0])
-    seen = jnp.array([True, True, True, False])
-    g = jnp.full((4, 2), 1e-6)
-    stats = densify.accumulate(densify.DensifyStats.zeros(4), g, seen,
-                               jnp.ones(4), 100, 40, count=share)
-    np.testing.assert_allclose(stats.denom, [0.5, 0.0, 1.0, 0.0])
-    plain = densify.accumulate(densify.DensifyStats.zeros(4), g, seen,
-                               jnp.ones(4), 100, 40)
-    np.testing.assert_array_equal(stats.grad_accum, plain.grad_accum)
-
   def test_screen_radius_is_three_sigma(self):
     # Covariance [[9, 2], [2, 4]] has eigenvalues 6.5 +- sqrt(2.5^2 + 4):
     # the largest is 9.7016, so the radius is 3 sqrt(9.7016) = 9.3442.
