@@ -5,6 +5,8 @@ SH basis is shared, and it has its own closed-form tests), so that the tiled
 rasterizer and its custom VJP can be checked against autodiff of this.
 """
 
+import functools
+
 import jax
 import jax.numpy as jnp
 
@@ -26,6 +28,11 @@ def _rotmat(q):
                  1 - 2 * (x * x + y * y)], -1)], -2)
 
 
+# One jitted program per shape, shared by every test that renders that shape
+# (the camera's values are traced). Run eagerly, it compiled each of its
+# ~100 primitives (and their gradients) at every new shape: 400 small
+# compiles and 10 s of CPU for one gradient test (issue 13).
+@functools.partial(jax.jit, static_argnames=("near", "sh_degree"))
 def render_ref(params, alive, cam, background, near=0.2, sh_degree=None,
                evidence_map=None):
   """Returns dict(image [H,W,3], alpha [H,W], depth [H,W], contribution [C]).
