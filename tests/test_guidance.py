@@ -273,6 +273,13 @@ class PruneTest(parameterized.TestCase):
     self.assertGreater(pruned, 0)
 
 
+@functools.lru_cache(maxsize=None)
+def _jitted_train_step(cfg):
+  """The jitted (not donating) train step of `cfg`, one per config: tests
+  that step the same config share its compile (issue 13)."""
+  return jax.jit(functools.partial(train.train_step, cfg=cfg))
+
+
 def _masked_scene():
   """The synthetic scene with a transient mask on half its training views."""
   scene = synthetic_scene()
@@ -311,7 +318,7 @@ class WiredStepTest(absltest.TestCase):
     cfg = train.resolve(dataclasses.replace(TEST_CFG, semantic=sem), scene)
     state = train.initial_state(cfg, scene)
     maps = jnp.full(scene.train.images.shape[:3], map_value, jnp.float32)
-    after, metrics = jax.jit(functools.partial(train.train_step, cfg=cfg))(
+    after, metrics = _jitted_train_step(cfg)(
         state, train.make_batch(scene.train), guidance.PixelMapScorer(maps))
     return state, after, metrics
 
