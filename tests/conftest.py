@@ -2,6 +2,8 @@
 
 import os
 
+import pytest
+
 # Must happen before jax is imported anywhere.
 os.environ["JAX_PLATFORMS"] = "cpu"
 
@@ -11,3 +13,39 @@ from absl import flags  # pylint: disable=g-import-not-at-top
 jax.config.update("jax_disable_most_optimizations", True)
 # absl raises UnparsedFlagAccessError under pytest otherwise.
 flags.FLAGS.mark_as_parsed()
+
+# issue 13: the suite's time is mostly single-threaded XLA compiles, so two
+# xdist worker processes use both cores of the 2-core box. Each file runs
+# whole on one worker (--dist loadfile), so the programs its tests share are
+# compiled once.
+DEFAULT_WORKERS = 2
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_cmdline_main(config):
+  """Runs on DEFAULT_WORKERS xdist workers unless -n (or -p no:xdist) says.
+
+  Called before xdist's own hook of the same name (conftest hooks run
+  first), which turns numprocesses into worker processes.
+  """
+  if (config.pluginmanager.hasplugin("xdist")
+      and not hasattr(config, "workerinput")      # not inside a worker
+      and config.option.numprocesses is None):
+    config.option.numprocesses = DEFAULT_WORKERS
+    if config.option.dist == "no":
+      config.option.dist = "loadfile"
+
+
+# The slowest files (pytest --durations, 2026-11-23), started first: a slow
+# file dealt last would leave the other worker idle at the end.
+SLOW_FILES_FIRST = (
+    "test_table.py", "test_guidance.py", "test_rasterize.py",
+    "test_rasterize_extreme.py", "test_notebook.py", "test_clip_dense.py",
+    "test_guidance_e2e.py", "test_bad_inputs.py", "test_rasterize_evidence.py",
+    "test_resume.py")
+
+
+def pytest_collection_modifyitems(items):
+  """Moves the files in SLOW_FILES_FIRST to the front, in that order."""
+  rank = {name: i for i, name in enumerate(SLOW_FILES_FIRST)}
+  items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
