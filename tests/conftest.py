@@ -1,4 +1,4 @@
-"""Test setup: CPU only, fast compiles, absl flags parsed."""
+"""Test setup: CPU only, fast compiles, absl flags, two xdist workers."""
 
 import os
 
