@@ -4,8 +4,9 @@
       --workdir=OUT [--config.semantic.scorer=oracle ...]
 
 Downscale 8, 1000 steps, tile_budget 8192 (the benchmark views overflow
-the default 2048), a checkpoint every 500 steps, 20 curve points, and the paper's semantic schedule
-scaled to the steps (BUILD_NOTES, "Benchmark table").
+the default 2048), a checkpoint every 500 steps, 20 curve points, and the
+paper's semantic schedule scaled to the steps (BUILD_NOTES, "Benchmark
+table").
 """
 
 from clipgs_jax import config as config_lib

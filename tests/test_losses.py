@@ -130,8 +130,6 @@ class PhotometricTest(absltest.TestCase):
     np.testing.assert_allclose(loss_same, 0.0, atol=1e-6)
 
 
-
-
 def test_weighted_photometric():
   rng = np.random.default_rng(0)
   pred = jnp.asarray(rng.uniform(size=(20, 24, 3)), jnp.float32)
