@@ -28,9 +28,13 @@ MAX_ALPHA = 0.99               # cap so 1 / (1 - alpha) stays <= 100
 # A pixel stops blending when its transmittance would fall below this; the
 # remaining light cannot change an 8-bit colour visibly (reference 3DGS).
 TRANSMITTANCE_THRESHOLD = 1e-4
-# Automatic lane count: a quarter of the tiles. Measured on a bird ds4 view
-# (135 tiles, lists of mean 206 / max 1,083 entries): see BUILD_NOTES.
-_AUTO_LANES_DIVISOR = 4
+# Automatic lane count: a sixth of the tiles. On the bird ds4 view (135
+# tiles, lists of mean 198 / max 1,206 entries) the longest list sets the
+# rounds (38); a sixth keeps them (40) with 23 lanes instead of 34, so the
+# share of executed pixel evaluations that a tile needed rises from 0.645 to
+# 0.906. Blend time did not move (a round's cost is half fixed overhead);
+# see BUILD_NOTES, session 8.
+_AUTO_LANES_DIVISOR = 6
 _GRAD_COLUMNS = 10             # mean 2, conic 3, colour 3, opacity, depth
 
 
@@ -41,7 +45,7 @@ class Grid:
   height: int
   tile_budget: int
   chunk_size: int
-  lanes: int = 0               # 0: automatic (num_tiles / 4)
+  lanes: int = 0               # 0: automatic (num_tiles / 6)
   tile: int = 16               # tile side in pixels
 
   @property

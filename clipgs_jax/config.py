@@ -26,7 +26,7 @@ class RenderConfig:
   near: float = 0.2            # near plane in scene units; closer is culled
   tile_budget: int = 2048      # K: buffer entries per tile, on average
   chunk_size: int = 32         # B: list entries blended per round per lane
-  lanes: int = 0               # tiles blended side by side; 0 = tiles / 4
+  lanes: int = 0               # tiles blended side by side; 0 = tiles / 6
   tile_size: int = 16          # tile side in pixels
 
 
