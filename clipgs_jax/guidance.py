@@ -354,8 +354,9 @@ def summarize(prune_events: list[dict], num_alive: int,
               stats: semantic.SemanticStats) -> dict[str, Any]:
   """The metrics.json fields of a run's semantic stage.
 
-  fraction_pruned = Gaussians removed by the semantic prune / (those
-  removed + those alive at the end).
+  fraction_pruned = Gaussians removed by eq. 13, both conditions (s_j > tau
+  and the n_j / alpha_j visibility rule; the two counts are beside it) /
+  (those removed + those alive at the end).
   """
   semantic_total = sum(e["num_pruned_semantic"] for e in prune_events)
   visibility_total = sum(e["num_pruned_visibility"] for e in prune_events)

@@ -149,9 +149,10 @@ def format_markdown(rows: list[dict], settings: dict) -> str:
       "", "Every row: the same config but for its overrides. "
       "ΔPSNR: guided minus vanilla 3DGS on the same scene; gap to clean: "
       "clean upper bound minus the row (dB). The ORACLE row scores views "
-      "with ground-truth masks, not CLIP. Mask IoU: the pruned Gaussians' "
-      "rendered alpha (> 0.5) against the training views' transient "
-      "masks.", "",
+      "with ground-truth masks, not CLIP. Fraction pruned: by eq. 13, "
+      "both its score and its visibility condition. Mask IoU: the "
+      "rendered alpha (> 0.5) of the Gaussians the score condition "
+      "pruned against the training views' transient masks.", "",
       f"| scene | method | PSNR | SSIM | LPIPS ({net}) | train s | "
       "Gaussians | fraction pruned | mask IoU | ΔPSNR | gap to clean |",
       "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
