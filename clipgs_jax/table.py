@@ -91,7 +91,8 @@ def collect_row(scene: str, row: str, cfg: config_lib.Config,
   if guided and semantic:
     out["fraction_pruned"] = finite(semantic.get("fraction_pruned"))
     iou = semantic.get("pruned_mask_iou") or {}
-    out["mask_iou"] = finite(iou.get("mean"))
+    if iou.get("num_gaussians") != 0:  # 0: nothing pruned, no IoU to give
+      out["mask_iou"] = finite(iou.get("mean"))
   return out
 
 

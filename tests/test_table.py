@@ -70,6 +70,18 @@ class FormatTest(absltest.TestCase):
     self.assertIsNone(r["psnr"])  # Non-finite: None, so JSON stays valid.
     json.dumps(r, allow_nan=False)
 
+  def test_mask_iou_only_where_something_was_pruned(self):
+    label = "CLIP-GS machinery, ORACLE scorer (ground-truth masks, not CLIP)"
+    iou = lambda n, mean: {"num_gaussians": n, "mean": mean}
+    m = _metrics(21.0, fraction_pruned=0.0, label=label)
+    m["semantic"]["pruned_mask_iou"] = iou(0, 0.0)  # every prune refused
+    self.assertIsNone(
+        table.collect_row("s", "oracle", _row_cfg("oracle"), m)["mask_iou"])
+    m["semantic"]["pruned_mask_iou"] = iou(65, 0.25)
+    self.assertAlmostEqual(
+        table.collect_row("s", "oracle", _row_cfg("oracle"), m)["mask_iou"],
+        0.25)
+
   def test_markdown(self):
     text = table.format_markdown(self._rows(), {"steps": 30,
                                                 "lpips_net": "alex"})
