@@ -97,7 +97,10 @@ PAPER_STATIC_PROMPTS = ("a photo of a building", "a photo of a wall",
                         "a photo of furniture")
 # The paper's run length; `SemanticConfig.scaled_to` scales its schedule.
 PAPER_STEPS = 20_000
-SCORERS = ("off", "clip", "oracle")
+# "uniform" is a control for localized evidence (benchmarks only): every
+# pixel of every training view gets the ground-truth masks' mean transient
+# fraction, i.e. the same total evidence as ORACLE-PIXEL with no location.
+SCORERS = ("off", "clip", "oracle", "uniform")
 WEIGHTINGS = ("visibility", "contribution")
 # Where a scorer's evidence comes from: "image", the paper's one score per
 # rendered view; "pixel", a per-pixel transient probability map per training
@@ -115,7 +118,8 @@ class SemanticConfig:
   step >= reg_start, and after `step` finished steps the host loop prunes
   when step >= prune_start and (step - prune_start) % prune_every == 0.
   """
-  scorer: str = "off"          # off | clip | oracle (benchmarks: reads masks)
+  scorer: str = "off"          # off | clip | oracle | uniform (oracle,
+  #   uniform: benchmarks only, read the ground-truth masks)
   evidence: str = "image"      # image (the paper) | pixel (localized maps)
   distractor_prompts: tuple[str, ...] = PAPER_DISTRACTOR_PROMPTS  # D
   static_prompts: tuple[str, ...] = PAPER_STATIC_PROMPTS  # S, logged only

@@ -125,6 +125,9 @@ def validate(sem: config_lib.SemanticConfig) -> None:
   if not 0.0 < sem.max_prune_fraction <= 1.0:
     problems.append(f"max_prune_fraction={sem.max_prune_fraction} is not in "
                     "(0, 1] (1.0 lifts the guard)")
+  if sem.scorer == "uniform" and sem.evidence != "pixel":
+    problems.append("scorer='uniform' is a per-pixel control map; it needs "
+                    "evidence='pixel'")
   if sem.loss_masking and sem.evidence != "pixel":
     problems.append("loss_masking needs evidence='pixel' (a per-pixel map)")
   if sem.dense_input_size <= 0:
@@ -173,14 +176,16 @@ def make_scorer(sem: config_lib.SemanticConfig, scene, *,
   validate(sem)
   if not sem.enabled:
     return None
-  if sem.scorer == "oracle":
+  if sem.scorer in ("oracle", "uniform"):
     masks = scene.train.masks
     if masks is None:
       raise ValueError(
-          "semantic scorer 'oracle' reads ground-truth transient masks, but "
-          "this scene has none: add masks/<image stem>.png (white = "
-          "transient) for the training views, or use "
+          f"semantic scorer {sem.scorer!r} reads ground-truth transient "
+          "masks, but this scene has none: add masks/<image stem>.png (white "
+          "= transient) for the training views, or use "
           "--config.semantic.scorer=clip|off.")
+    if sem.scorer == "uniform":
+      return uniform_control(masks)
     if sem.localized:
       return PixelMapScorer(maps=jnp.asarray(masks, jnp.float32))
     return OracleScorer(masks=jnp.asarray(masks, bool),
@@ -194,6 +199,22 @@ def make_scorer(sem: config_lib.SemanticConfig, scene, *,
     return PixelMapScorer(maps=dense_maps(dense, scene.train.images))
   return clip_scorer.make(sem, weights_path=clip_weights,
                           clip_params=clip_params)
+
+
+def uniform_control(masks) -> PixelMapScorer:
+  """The control for localized evidence: no location, the same total.
+
+  Every pixel of every view gets the masks' mean transient fraction, so the
+  accumulated s_j is (nearly) that constant for every Gaussian: the opacity
+  loss of eqs. 11-12 becomes a uniform opacity penalty of ORACLE-PIXEL's
+  average strength, and tau_p never fires. What a localized row gains over
+  this row is what the location of the evidence buys.
+
+  Args:
+    masks: bool [V, H, W], the training views' ground-truth masks.
+  """
+  fraction = float(np.mean(np.asarray(masks, bool)))
+  return PixelMapScorer(maps=jnp.full(np.shape(masks), fraction, jnp.float32))
 
 
 def dense_maps(dense_scorer, images) -> jax.Array:

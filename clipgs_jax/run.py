@@ -102,6 +102,9 @@ def semantic_label(sem: config_lib.SemanticConfig) -> str:
   if not sem.prune:
     variant += ", no pruning"
   if sem.localized:
+    if sem.scorer == "uniform":
+      return ("localized CLIP-GS machinery, UNIFORM control map (the "
+              "ground-truth masks' mean everywhere: no location)" + variant)
     if sem.scorer == "oracle":
       return ("localized CLIP-GS machinery, ORACLE-PIXEL scorer "
               "(ground-truth masks, not CLIP)" + variant)

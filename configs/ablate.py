@@ -10,6 +10,10 @@ folders, so runs are shared and resumable):
   oracle             ORACLE scorer, opacity loss and pruning (the table's)
   oracle_reg_only    ... opacity loss only (semantic.prune False)
   oracle_prune_only  ... pruning only (semantic.lambda_c 0)
+  oracle_pixel       localized: the ground-truth mask per pixel (the table's)
+  uniform_pixel      ... the masks' mean fraction at every pixel instead: a
+                     uniform opacity penalty of the same total evidence (the
+                     control for what the location buys)
   clip               CLIP scorer, the paper's distractor prompts
   clip_generic       CLIP scorer, generic prompts
   clean              3DGS on the clean views (upper bound)
@@ -28,6 +32,8 @@ DESCRIPTIONS = {
     "oracle": "ORACLE: opacity loss + pruning",
     "oracle_reg_only": "ORACLE: opacity loss only",
     "oracle_prune_only": "ORACLE: pruning only",
+    "oracle_pixel": "ORACLE-PIXEL: localized evidence",
+    "uniform_pixel": "UNIFORM control: the masks' mean at every pixel",
     "clip": "CLIP: paper prompts",
     "clip_generic": "CLIP: generic prompts",
     "clean": "3DGS on clean views (upper bound)",
@@ -41,6 +47,8 @@ def get_config():
   oracle = {"scorer": "oracle"}
   rows.oracle_reg_only = {"semantic": dict(oracle, prune=False)}
   rows.oracle_prune_only = {"semantic": dict(oracle, lambda_c=0.0)}
+  rows.uniform_pixel = {"semantic": {"scorer": "uniform",
+                                     "evidence": "pixel"}}
   rows.clip_generic = {"semantic": {
       "scorer": "clip", "distractor_prompts": GENERIC_PROMPTS}}
   cd.sweep.kind = "ablate"

@@ -7,6 +7,7 @@ from absl.testing import absltest
 import numpy as np
 
 from clipgs_jax import config
+from clipgs_jax import run as run_lib
 from clipgs_jax import sweep
 from clipgs_jax import table
 from clipgs_jax import tau_sweep
@@ -107,6 +108,10 @@ class AblateTest(absltest.TestCase):
     self.assertEqual(reg.semantic.tau, 0.03)
     self.assertEqual(sweep.row_config(cd, "oracle_prune_only")
                      .semantic.lambda_c, 0.0)
+    uniform = sweep.row_config(cd, "uniform_pixel").semantic
+    self.assertEqual((uniform.scorer, uniform.evidence, uniform.loss_masking),
+                     ("uniform", "pixel", False))
+    self.assertIn("UNIFORM control", run_lib.semantic_label(uniform))
     generic = sweep.row_config(cd, "clip_generic")
     self.assertEqual(generic.semantic.distractor_prompts,
                      ("a photo of an object", "a photo of a thing"))

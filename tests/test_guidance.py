@@ -145,6 +145,23 @@ class ScorerTest(absltest.TestCase):
     np.testing.assert_array_equal(scorer.score_map(jnp.int32(2)),
                                   scene.train.masks[2].astype(np.float32))
 
+  def test_uniform_control_spreads_the_masks_mean(self):
+    scene = _masked_scene()
+    scorer = guidance.make_scorer(
+        config.SemanticConfig(scorer="uniform", evidence="pixel"), scene)
+    fraction = np.mean(scene.train.masks)
+    self.assertGreater(fraction, 0.0)
+    for view in range(scene.train.masks.shape[0]):
+      np.testing.assert_allclose(scorer.score_map(jnp.int32(view)),
+                                 np.full(scene.train.masks.shape[1:],
+                                         fraction), rtol=1e-6)
+    with self.assertRaisesRegex(ValueError, "needs evidence='pixel'"):
+      guidance.make_scorer(config.SemanticConfig(scorer="uniform"), scene)
+    no_masks = synthetic_scene(num=8, size=8, num_train=2, num_test=1)
+    with self.assertRaisesRegex(ValueError, "'uniform' reads ground-truth"):
+      guidance.make_scorer(config.SemanticConfig(
+          scorer="uniform", evidence="pixel"), no_masks)
+
   def test_score_and_accumulate(self):
     sem = config.SemanticConfig(scorer="oracle", accumulate_start=3,
                                 score_every=2, beta=0.1)
