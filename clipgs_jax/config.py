@@ -176,7 +176,7 @@ class SemanticConfig:
 @dataclasses.dataclass(frozen=True)
 class DataConfig:
   """Which scene a run reads, and how."""
-  scene: str | None = None     # scene folder; None = the embedded scene
+  scene: str | None = None     # folder or .npz pack; None = embedded scene
   downscale: int = 1           # image downscale factor (1: full size)
   train_split: str = "clutter"  # RobustNeRF: clutter views or clean twins
 

@@ -50,7 +50,7 @@ def build(values: dict | ml_collections.ConfigDict) -> config_lib.Config:
 
   train.steps None means default_scene.TRAIN_STEPS on the embedded scene
   (data.scene None) and TrainConfig's 30k on a scene folder. Nothing is
-  read but the scene folder's existence.
+  read but the scene's existence.
   """
   if isinstance(values, ml_collections.ConfigDict):
     values = values.to_dict()
@@ -72,7 +72,10 @@ def build(values: dict | ml_collections.ConfigDict) -> config_lib.Config:
   nets = metrics_lib.LPIPS_NETS
   cli.require(ev.lpips_net in nets, "config.eval.lpips_net", ev.lpips_net,
               f"is not one of {', '.join(nets)}")
-  cli.require_folder("scene", data.scene)
+  if data.scene is not None and data.scene.endswith(scene_lib.PACK_SUFFIX):
+    cli.require_file("scene", data.scene)
+  else:
+    cli.require_folder("scene", data.scene)
   if data.scene is None:
     return cfg
   # An absolute path, so that --resume from another folder matches.
@@ -250,7 +253,8 @@ def run_sweep(cd: ml_collections.ConfigDict, workdir: str, *,
                 "names several scenes; the demo takes one")
     names = [""]
   else:
-    names = [os.path.basename(b) for b in benchmarks]
+    names = [os.path.basename(b).removesuffix(scene_lib.PACK_SUFFIX)
+             for b in benchmarks]
   cli.require(len(set(names)) == len(names), "scene", ",".join(names),
               "names two benchmarks of the same basename; rename one")
   rows = _names(sweep.rows)

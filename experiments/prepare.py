@@ -1,4 +1,5 @@
-"""Scenes to train on: poses for a folder of photos, or a transient benchmark.
+"""Scenes to train on: poses for a folder of photos, a transient benchmark,
+or a scene packed into one file.
 
   python experiments/prepare.py --prepare=reconstruct --images=DIR --out=DIR
       [--camera_model=SIMPLE_RADIAL] [--nosingle_camera]
@@ -6,6 +7,8 @@
       --distractors=PHOTO_DIR --out=DIR --seed=S
       [--mode=independent|persistent] [--persist_views=5] [--fraction=0.5]
       [--per_view=1..3] [--overwrite] [--cache_dir=DIR]
+  python experiments/prepare.py --prepare=pack --scene_folder=DIR
+      --downscale=K --out=FILE.npz [--cache_dir=DIR]
 
 reconstruct: SfM with pycolmap's global mapper (clipgs_jax/data/
   reconstruct.py); DIR gets database.db, sparse/0 and images -> --images,
@@ -16,22 +19,31 @@ benchmark: a RobustNeRF-layout transient benchmark from a static scene
   categories (person / clutter) come from PHOTO_DIR/person/ and
   PHOTO_DIR/clutter/, or PHOTO_DIR/categories.txt with one `CATEGORY NAME`
   per line, or the file names of ../shared/data/distractors.
+pack: the scene's loaded arrays at downscale K (cameras, 16-bit images,
+  masks, points; both train splits of a benchmark) in one compressed .npz,
+  bit for bit what train.py loads from DIR; pass it as --scene=FILE.npz
+  with --config.data.downscale=K. It needs neither pycolmap nor the image
+  files, e.g. to train on a machine that has neither.
 A bad input ends in one line on stderr; nothing is left in --out.
 """
 
+import os
 import time
 
 from absl import flags
 
 from clipgs_jax import cli
 from clipgs_jax.data import reconstruct
+from clipgs_jax.data import scene as scene_lib
 from clipgs_jax.data import transients
 
-_PREPARE = flags.DEFINE_enum("prepare", None, ["reconstruct", "benchmark"],
+_PREPARE = flags.DEFINE_enum("prepare", None,
+                             ["reconstruct", "benchmark", "pack"],
                              "What to make.")
 _OUT = flags.DEFINE_string("out", None, "Output scene folder (reconstruct: "
                            "without a sparse/ model yet; benchmark: absent "
-                           "or empty unless --overwrite).")
+                           "or empty unless --overwrite), or pack: the "
+                           ".npz file.")
 _IMAGES = flags.DEFINE_string("images", None, "reconstruct: folder of "
                               "photos.")
 _CAMERA_MODEL = flags.DEFINE_string("camera_model", "SIMPLE_RADIAL",
@@ -61,8 +73,14 @@ _PER_VIEW = flags.DEFINE_string("per_view", "1..3", "benchmark: photos per "
                                 "integer or a range A..B.")
 _OVERWRITE = flags.DEFINE_bool("overwrite", False,
                                "benchmark: replace a non-empty --out.")
-_CACHE_DIR = flags.DEFINE_string("cache_dir", None, "benchmark: "
-                                 "undistortion cache of --clean_scene.")
+_CACHE_DIR = flags.DEFINE_string("cache_dir", None, "benchmark, pack: "
+                                 "undistortion and resize cache of the "
+                                 "input scene.")
+_SCENE_FOLDER = flags.DEFINE_string("scene_folder", None, "pack: the scene "
+                                    "folder (images/, sparse/0/).")
+_DOWNSCALE = flags.DEFINE_integer("downscale", None, "pack: image downscale "
+                                  "factor K (train.py's "
+                                  "--config.data.downscale).")
 flags.mark_flags_as_required(["prepare", "out"])
 
 
@@ -98,12 +116,27 @@ def _benchmark() -> None:
         f"test views, in {time.perf_counter() - tic:.1f} s")
 
 
+def _pack() -> None:
+  for flag in (_SCENE_FOLDER, _DOWNSCALE):
+    cli.require(flag.value is not None, flag.name, None,
+                "is needed for --prepare=pack")
+  cli.require(_OUT.value.endswith(scene_lib.PACK_SUFFIX), "out", _OUT.value,
+              f"must be a file name ending in {scene_lib.PACK_SUFFIX}")
+  cli.require_folder("scene_folder", _SCENE_FOLDER.value)
+  tic = time.perf_counter()
+  splits = scene_lib.pack(_SCENE_FOLDER.value, _OUT.value, _DOWNSCALE.value,
+                          cache_dir=_CACHE_DIR.value)
+  size = os.path.getsize(_OUT.value) / 2**20
+  print(f"wrote {_OUT.value} ({size:.1f} MiB; train splits: "
+        f"{', '.join(splits) or 'one, no RobustNeRF names'}) in "
+        f"{time.perf_counter() - tic:.1f} s; train on it with "
+        f"--scene={_OUT.value} --config.data.downscale={_DOWNSCALE.value}")
+
+
 def main(argv):
   cli.no_arguments(argv)
-  if _PREPARE.value == "reconstruct":
-    _reconstruct()
-  else:
-    _benchmark()
+  {"reconstruct": _reconstruct, "benchmark": _benchmark,
+   "pack": _pack}[_PREPARE.value]()
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """Trains what a config file describes: one run, or a sweep of runs.
 
   python experiments/train.py --workdir=DIR [--config=configs/NAME.py]
-      [--scene=DIR] [--resume] [--clip_weights=PATH]
+      [--scene=DIR|PACK.npz] [--resume] [--clip_weights=PATH]
       [--config.train.steps=N] [--config.semantic.scorer=oracle] ...
 
 --config (default configs/default.py: the 3DGS paper values; the embedded
@@ -37,8 +37,9 @@ flags.declare_key_flag("config")     # listed by --helpshort
 _WORKDIR = flags.DEFINE_string("workdir", None, "Output folder (a sweep: "
                                "the root of its rows and table).")
 _SCENE = flags.DEFINE_string(
-    "scene", None, "Scene folder (images/ + sparse/0/), default: the "
-    "embedded scene; a sweep: its benchmark folders, comma-separated.")
+    "scene", None, "Scene folder (images/ + sparse/0/) or its pack (.npz "
+    "from prepare.py --prepare=pack), default: the embedded scene; a sweep: "
+    "its benchmarks, comma-separated.")
 _RESUME = flags.DEFINE_bool("resume", False, "Continue from "
                             "workdir/checkpoint.npz (sweep rows always do).")
 _CLIP_WEIGHTS = flags.DEFINE_string(

@@ -1,6 +1,8 @@
 """Tests for data/scene.py: splits, downscaling, masks and real scenes."""
 
 import os
+import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -269,3 +271,106 @@ def test_bonsai_is_undistorted(real_cache):
                              model.intrinsics[0, 0] * sw / w, rtol=1e-6)
   np.testing.assert_allclose(s.train.cameras.cx,
                              model.intrinsics[0, 2] * sw / w, rtol=1e-6)
+
+
+def _assert_same_views(a: scene.Views, b: scene.Views):
+  assert a.names == b.names
+  assert a.images.dtype == b.images.dtype == np.float32
+  np.testing.assert_array_equal(a.images, b.images)
+  assert (a.masks is None) == (b.masks is None)
+  if a.masks is not None:
+    np.testing.assert_array_equal(a.masks, b.masks)
+  assert (a.cameras.width, a.cameras.height) == (b.cameras.width,
+                                                 b.cameras.height)
+  for field in ("rotation", "translation", "fx", "fy", "cx", "cy"):
+    x, y = getattr(a.cameras, field), getattr(b.cameras, field)
+    assert x.dtype == y.dtype, field
+    np.testing.assert_array_equal(x, y, err_msg=field)
+
+
+def _assert_same_scene(a: scene.Scene, b: scene.Scene):
+  _assert_same_views(a.train, b.train)
+  _assert_same_views(a.test, b.test)
+  np.testing.assert_array_equal(a.points, b.points)
+  np.testing.assert_array_equal(a.point_colors, b.point_colors)
+  assert a.extent == b.extent
+
+
+def _robustnerf_scene(root, clean: bool):
+  """1 extra, 3 clutter views with masks (and their 3 clean twins)."""
+  names = (["1extra0.png"] + [f"2clutter{i}.png" for i in range(3)] +
+           ([f"3clean{i}.png" for i in range(3)] if clean else []))
+  write_scene(root, names, cams=((64, 48),))
+  for i in range(3):
+    mask = np.zeros((48, 64), bool)
+    mask[5 * i:5 * i + 9, 10:30] = True
+    images.write_png(str(root / "masks" / f"2clutter{i}.png"), mask)
+
+
+def test_pack_is_the_loaded_scene_bit_for_bit(tmp_path):
+  _robustnerf_scene(tmp_path / "s", clean=True)
+  cache = str(tmp_path / "cache")
+  out = str(tmp_path / "s.npz")
+  assert scene.pack(str(tmp_path / "s"), out, 2, cache_dir=cache) == (
+      "clutter", "clean")
+  for split in ("clutter", "clean"):
+    packed = scene.load_scene(out, downscale=2, train_split=split)
+    _assert_same_scene(_load(tmp_path / "s", downscale=2, train_split=split),
+                       packed)
+    assert packed.path == out
+  assert packed.train.masks is None            # the clean twins have none
+  # Without RobustNeRF names train_split is ignored, as for the folder.
+  write_scene(tmp_path / "plain", [f"v{i:02d}.png" for i in range(10)])
+  out = str(tmp_path / "plain.npz")
+  assert scene.pack(str(tmp_path / "plain"), out, 1, cache_dir=cache) == ()
+  for split in ("clutter", "clean"):
+    _assert_same_scene(_load(tmp_path / "plain", train_split=split),
+                       scene.load_scene(out, train_split=split))
+
+
+def test_pack_errors_name_the_file_and_the_fix(tmp_path):
+  _robustnerf_scene(tmp_path / "s", clean=False)
+  out = str(tmp_path / "s.npz")
+  scene.pack(str(tmp_path / "s"), out, 2, cache_dir=str(tmp_path / "c"))
+  with pytest.raises(ValueError, match=r"holds downscale 2, not 1; pass "
+                     r"--config.data.downscale=2"):
+    scene.load_scene(out, downscale=1)
+  with pytest.raises(ValueError, match=r"split\(s\) \('clutter',\), not "
+                     "'clean'"):
+    scene.load_scene(out, downscale=2, train_split="clean")
+  with pytest.raises(ValueError, match="must end in .npz"):
+    scene.pack(str(tmp_path / "s"), str(tmp_path / "s.zip"), 2)
+  with pytest.raises(FileNotFoundError, match="prepare.py --prepare=pack"):
+    scene.load_scene(str(tmp_path / "missing.npz"))
+  np.savez(tmp_path / "other.npz", x=np.zeros(3))
+  with pytest.raises(ValueError, match="other.npz is not a scene pack"):
+    scene.load_scene(str(tmp_path / "other.npz"))
+  (tmp_path / "junk.npz").write_bytes(b"not a zip file")
+  with pytest.raises(ValueError, match="junk.npz cannot be read as a scene"):
+    scene.load_scene(str(tmp_path / "junk.npz"))
+
+
+def test_pack_trains_without_pycolmap(tmp_path):
+  """The package imports, and a pack loads, where pycolmap is missing."""
+  _robustnerf_scene(tmp_path / "s", clean=False)
+  out = str(tmp_path / "s.npz")
+  scene.pack(str(tmp_path / "s"), out, 2, cache_dir=str(tmp_path / "c"))
+  code = f"""
+import sys
+sys.modules["pycolmap"] = None           # import pycolmap raises ImportError
+from clipgs_jax import run, sweep
+from clipgs_jax.data import scene
+s = scene.load_scene({out!r}, downscale=2)
+print(s.train.images.shape, int(s.train.masks.sum()))
+try:
+  scene.load_scene({str(tmp_path / "s")!r})
+except ImportError:
+  print("folder needs pycolmap")
+"""
+  env = dict(os.environ, JAX_PLATFORMS="cpu")
+  proc = subprocess.run([sys.executable, "-c", code], capture_output=True,
+                        text=True, env=env, check=False, timeout=300)
+  assert proc.returncode == 0, proc.stderr
+  masked = int(_load(tmp_path / "s", downscale=2).train.masks.sum())
+  assert proc.stdout.split("\n")[:2] == [f"(3, 24, 32, 3) {masked}",
+                                         "folder needs pycolmap"]

@@ -1,4 +1,8 @@
-"""COLMAP sparse models via pycolmap: poses, pinhole intrinsics, points."""
+"""COLMAP sparse models via pycolmap: poses, pinhole intrinsics, points.
+
+pycolmap is imported by the functions that read or undistort a model, so
+that the package, and a scene pack (scene.pack), load without it.
+"""
 
 import dataclasses
 import hashlib
@@ -7,7 +11,6 @@ import shutil
 import uuid
 
 import numpy as np
-import pycolmap
 
 from clipgs_jax.data import colmap_check
 
@@ -92,8 +95,9 @@ def find_sparse_dir(scene_path: str) -> str:
       f"(cameras.bin or cameras.txt missing); {_FIX}.")
 
 
-def read_reconstruction(sparse_dir: str) -> pycolmap.Reconstruction:
+def read_reconstruction(sparse_dir: str) -> "pycolmap.Reconstruction":
   """Reads a binary (preferred, as COLMAP does) or text model, checked."""
+  import pycolmap  # pylint: disable=import-outside-toplevel
   binary = os.path.isfile(os.path.join(sparse_dir, "cameras.bin"))
   ext = "bin" if binary else "txt"
   for name in _MODEL_FILES:
@@ -113,7 +117,7 @@ def read_reconstruction(sparse_dir: str) -> pycolmap.Reconstruction:
   return rec
 
 
-def _registered(rec: pycolmap.Reconstruction) -> list:
+def _registered(rec: "pycolmap.Reconstruction") -> list:
   images = []
   for image in rec.images.values():
     # pycolmap >= 3.12 says `has_pose`; older versions said `registered`.
@@ -185,6 +189,7 @@ def _undistort(sparse_dir: str, image_dir: str, names, cache_dir: str) -> str:
   in a temp folder and renamed into place, so a crash never leaves a
   half-written copy that later runs would trust.
   """
+  import pycolmap  # pylint: disable=import-outside-toplevel
   model_files = sorted(os.path.join(sparse_dir, f)
                        for f in os.listdir(sparse_dir)
                        if f.endswith((".bin", ".txt")))

@@ -8,7 +8,6 @@ binary records are walked byte by byte, and text camera models are named.
 import os
 import struct
 
-import pycolmap
 
 
 class _Reader:
@@ -52,6 +51,7 @@ class _Reader:
 
 def _num_params() -> dict[int, tuple[str, int]]:
   """Camera model id -> (name, number of parameters), from pycolmap itself."""
+  import pycolmap  # pylint: disable=import-outside-toplevel  # see colmap.py
   table = {}
   for name, model_id in pycolmap.CameraModelId.__members__.items():
     if name == "INVALID":
@@ -120,6 +120,7 @@ def check_binary(folder: str) -> None:
 
 def check_text(folder: str) -> None:
   """Checks camera model names in cameras.txt (clearer than pycolmap's)."""
+  import pycolmap  # pylint: disable=import-outside-toplevel  # see colmap.py
   names = {n for n in pycolmap.CameraModelId.__members__ if n != "INVALID"}
   path = os.path.join(folder, "cameras.txt")
   with open(path, encoding="utf-8", errors="replace") as f:

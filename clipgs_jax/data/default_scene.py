@@ -6,7 +6,6 @@ import shutil
 import uuid
 
 import numpy as np
-import pycolmap
 
 from clipgs_jax import camera
 from clipgs_jax.data import colmap
@@ -182,6 +181,7 @@ def _sample_points(rng, buffers):
 
 
 def _write_model(folder, named_cams, points, colors):
+  import pycolmap  # pylint: disable=import-outside-toplevel  # see colmap.py
   rec = pycolmap.Reconstruction()
   rec.add_camera_with_trivial_rig(pycolmap.Camera(
       camera_id=1, model="PINHOLE", width=WIDTH, height=HEIGHT,

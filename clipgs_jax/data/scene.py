@@ -6,6 +6,7 @@ import os
 import numpy as np
 
 from clipgs_jax import camera
+from clipgs_jax import fileio
 from clipgs_jax.data import colmap
 from clipgs_jax.data import images
 
@@ -22,6 +23,15 @@ MASK_THRESHOLD = 0.5
 # Smallest image side: the SSIM window (losses.SSIM_WINDOW); the test
 # metrics' SSIM needs one full window inside the image.
 MIN_IMAGE_SIDE = 11
+# A packed scene (`pack`) is one .npz file of a scene's loaded arrays at one
+# downscale; `load_scene` reads it in place of the folder, without pycolmap
+# or image decoding (e.g. on a GPU machine that has neither).
+PACK_SUFFIX = ".npz"
+PACK_FORMAT = "clipgs_jax scene pack 1"
+# Loaded images are 16-bit codes (images.load_image quantises them; 8-bit
+# files are k / 255 = 257 k / 65535), so a pack stores uint16 exactly.
+_CODES = 65535
+_CAMERA_FIELDS = ("rotation", "translation", "fx", "fy", "cx", "cy")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,7 +67,7 @@ class Scene:
     extent: float, radius of the training camera centres around their mean,
       times 1.1 (3DGS's cameras_extent); scales learning rates and
       densification thresholds.
-    path: str, the scene folder.
+    path: str, the scene folder (or its pack file).
   """
   train: Views
   test: Views
@@ -199,7 +209,7 @@ def _extent(cameras: camera.Camera) -> float:
 
 def load_scene(path: str, downscale: int = 1, train_split: str = "clutter",
                cache_dir: str | None = None) -> Scene:
-  """Loads a COLMAP scene with its train/test split.
+  """Loads a COLMAP scene (or its pack, see `pack`) with its train/test split.
 
   Splits: with RobustNeRF names (`clutter`, `extra`, `clean` in the image
   names) the test views are `extra` and the training views are
@@ -209,7 +219,8 @@ def load_scene(path: str, downscale: int = 1, train_split: str = "clutter",
   transient) for the training views when present.
 
   Args:
-    path: str, scene folder with `images/` and `sparse/0/`.
+    path: str, scene folder with `images/` and `sparse/0/`, or a `.npz`
+      file written by `pack` (it must hold `downscale`; `cache_dir` unused).
     downscale: int, image downscale factor K (uses `images_K/` if present).
     train_split: str, "clutter" or "clean" (RobustNeRF scenes only).
     cache_dir: str or None, writable folder for undistorted and resized
@@ -219,6 +230,8 @@ def load_scene(path: str, downscale: int = 1, train_split: str = "clutter",
     A `Scene`.
   """
   images.downscaled_size(1, 1, downscale)      # validates the factor
+  if path.endswith(PACK_SUFFIX):
+    return _load_pack(path, downscale, train_split)
   cache_dir = cache_dir or colmap.default_cache_dir(path)
   model = colmap.load_model(path, cache_dir=cache_dir)
   train_idx, test_idx = _split_names(model.names, train_split,
@@ -229,4 +242,108 @@ def load_scene(path: str, downscale: int = 1, train_split: str = "clutter",
                      with_masks=False)
   return Scene(train=train, test=test, points=model.points,
                point_colors=model.point_colors.astype(np.float32) / 255,
+               extent=_extent(train.cameras), path=path)
+
+
+def _train_splits(path: str, cache_dir: str | None) -> tuple[str, ...]:
+  """The train splits of a folder scene: those named in a RobustNeRF one,
+  () for other scenes (their train_split is ignored)."""
+  bases = [os.path.basename(n)
+           for n in colmap.load_model(path, cache_dir=cache_dir).names]
+  if not any(t in b for b in bases for t in _ROBUSTNERF_TOKENS):
+    return ()
+  return tuple(t for t in TRAIN_SPLITS if any(t in b for b in bases))
+
+
+def _views_arrays(prefix: str, views: Views) -> dict[str, np.ndarray]:
+  codes = np.round(views.images * _CODES).astype(np.uint16)
+  if not np.array_equal(codes.astype(np.float32) / np.float32(_CODES),
+                        views.images):
+    raise ValueError(f"{prefix} images are not 16-bit codes, so a pack "
+                     "would change them; load them with images.load_image.")
+  out = {f"{prefix}.{k}": np.asarray(getattr(views.cameras, k))
+         for k in _CAMERA_FIELDS}
+  out[f"{prefix}.size"] = np.array([views.cameras.width,
+                                    views.cameras.height])
+  out[f"{prefix}.images"] = codes
+  out[f"{prefix}.names"] = np.array(views.names, dtype=str)
+  if views.masks is not None:
+    out[f"{prefix}.masks"] = views.masks
+  return out
+
+
+def pack(path: str, out: str, downscale: int,
+         cache_dir: str | None = None) -> tuple[str, ...]:
+  """Writes the folder scene `path` at `downscale` as one .npz file `out`.
+
+  The file holds what `load_scene` returns for every train split the scene
+  has (both for a RobustNeRF benchmark, whose clean upper bound reads
+  `clean`), bit for bit; `load_scene(out, downscale, split)` gives it back
+  without pycolmap or image files. Written atomically, compressed.
+
+  Returns:
+    The RobustNeRF train splits packed; () for a scene without them.
+  """
+  if not out.endswith(PACK_SUFFIX):
+    raise ValueError(f"pack output {out} must end in {PACK_SUFFIX}.")
+  splits = _train_splits(path, cache_dir)
+  arrays = {"format": np.array(PACK_FORMAT), "downscale": np.array(downscale),
+            "splits": np.array(splits, dtype=str)}
+  for split in splits or TRAIN_SPLITS[:1]:
+    scene = load_scene(path, downscale, split, cache_dir)
+    arrays |= _views_arrays(f"train.{split if splits else 'all'}",
+                            scene.train)
+  arrays |= _views_arrays("test", scene.test)
+  arrays |= {"points": scene.points, "point_colors": scene.point_colors}
+  fileio.atomic_write(out, lambda tmp: np.savez_compressed(tmp, **arrays),
+                      PACK_SUFFIX)
+  return splits
+
+
+def _read_views(data, prefix: str, path: str) -> Views:
+  width, height = (int(v) for v in data[f"{prefix}.size"])
+  cameras = camera.Camera(**{k: data[f"{prefix}.{k}"] for k in _CAMERA_FIELDS},
+                          width=width, height=height)
+  for i in range(len(cameras.fx)):
+    camera.validate(camera.Camera(
+        **{k: getattr(cameras, k)[i] for k in _CAMERA_FIELDS},
+        width=width, height=height), f"{path}: {prefix} camera {i}")
+  masks = data.get(f"{prefix}.masks")
+  return Views(
+      cameras=cameras,
+      images=data[f"{prefix}.images"].astype(np.float32) / np.float32(_CODES),
+      names=tuple(str(n) for n in data[f"{prefix}.names"]),
+      masks=None if masks is None else masks.astype(bool))
+
+
+def _load_pack(path: str, downscale: int, train_split: str) -> Scene:
+  """The Scene that `pack` wrote to `path`."""
+  if not os.path.isfile(path):
+    raise FileNotFoundError(f"scene pack {path} does not exist; write it with "
+                            "experiments/prepare.py --prepare=pack.")
+  if train_split not in TRAIN_SPLITS:
+    raise ValueError(f"train_split must be one of {TRAIN_SPLITS}, got "
+                     f"{train_split!r}.")
+  try:
+    with np.load(path) as npz:
+      data = {k: npz[k] for k in npz.files}
+  except Exception as e:  # zipfile, pickle and format errors alike
+    raise ValueError(f"{path} cannot be read as a scene pack ({e}); write it "
+                     "again with experiments/prepare.py --prepare=pack.") from e
+  if str(data.get("format", "")) != PACK_FORMAT:
+    raise ValueError(f"{path} is not a scene pack ({PACK_FORMAT!r}); write "
+                     "it with experiments/prepare.py --prepare=pack.")
+  packed = int(data["downscale"])
+  if packed != downscale:
+    raise ValueError(f"scene pack {path} holds downscale {packed}, not "
+                     f"{downscale}; pass --config.data.downscale={packed} or "
+                     f"pack the scene again with --downscale={downscale}.")
+  splits = tuple(str(s) for s in data["splits"])
+  if splits and train_split not in splits:
+    raise ValueError(f"scene pack {path} has the train split(s) {splits}, "
+                     f"not {train_split!r}; pack a scene that has it.")
+  # Without RobustNeRF names train_split is ignored, as for the folder.
+  train = _read_views(data, f"train.{train_split if splits else 'all'}", path)
+  return Scene(train=train, test=_read_views(data, "test", path),
+               points=data["points"], point_colors=data["point_colors"],
                extent=_extent(train.cameras), path=path)
