@@ -38,6 +38,12 @@ class ConfigFilesTest(absltest.TestCase):
     self.assertEqual(cfg.densify, paper.densify)
     self.assertEqual(cfg.semantic, paper.semantic)
 
+  def test_scene_pack_is_a_file(self):
+    pack = self.create_tempfile("scene.npz").full_path
+    cd = _cd("default")
+    cd.data.scene = pack
+    self.assertEqual(sweep.build(cd).data.scene, pack)
+
   def test_smoke_is_the_old_preset(self):
     cfg = config.named("smoke")
     self.assertEqual(cfg.train, config.TrainConfig(
@@ -79,7 +85,9 @@ class BadValuesTest(parameterized.TestCase):
       ("split", {"data": {"train_split": "dirty"}}, "train_split=dirty"),
       ("lpips", {"eval": {"lpips_net": "squeeze"}}, "lpips_net=squeeze"),
       ("no_scene", {"data": {"scene": "/nonexistent/scene"}},
-       "does not exist"),
+       "does not exist; pass an existing folder"),
+      ("no_pack", {"data": {"scene": "/nonexistent/scene.npz"}},
+       "does not exist; check the path"),
       ("tau", {"semantic": {"scorer": "oracle", "tau": 2.0}},
        "tau=2.0 is not in [0, 1]"),
       ("cadence", {"semantic": {"scorer": "oracle", "score_every": 0}},
