@@ -9,7 +9,6 @@ import os
 import struct
 
 
-
 class _Reader:
   """Bounds-checked little-endian reads from one binary model file."""
 

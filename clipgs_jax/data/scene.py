@@ -77,13 +77,15 @@ class Scene:
   path: str
 
 
+def _name_tokens(names) -> list[list[str]]:
+  """The RobustNeRF split words in each image's file name."""
+  return [[t for t in _ROBUSTNERF_TOKENS if t in os.path.basename(n)]
+          for n in names]
+
+
 def _split_names(names, train_split: str, sparse_dir: str):
   """(train indices, test indices) into the sorted `names`."""
-  if train_split not in TRAIN_SPLITS:
-    raise ValueError(f"train_split must be one of {TRAIN_SPLITS}, got "
-                     f"{train_split!r}.")
-  tokens = [[t for t in _ROBUSTNERF_TOKENS if t in os.path.basename(n)]
-            for n in names]
+  tokens = _name_tokens(names)
   if any(tokens):
     # RobustNeRF naming: every image must say which split it belongs to.
     for name, found in zip(names, tokens):
@@ -230,6 +232,9 @@ def load_scene(path: str, downscale: int = 1, train_split: str = "clutter",
     A `Scene`.
   """
   images.downscaled_size(1, 1, downscale)      # validates the factor
+  if train_split not in TRAIN_SPLITS:
+    raise ValueError(f"train_split must be one of {TRAIN_SPLITS}, got "
+                     f"{train_split!r}.")
   if path.endswith(PACK_SUFFIX):
     return _load_pack(path, downscale, train_split)
   cache_dir = cache_dir or colmap.default_cache_dir(path)
@@ -248,11 +253,8 @@ def load_scene(path: str, downscale: int = 1, train_split: str = "clutter",
 def _train_splits(path: str, cache_dir: str | None) -> tuple[str, ...]:
   """The train splits of a folder scene: those named in a RobustNeRF one,
   () for other scenes (their train_split is ignored)."""
-  bases = [os.path.basename(n)
-           for n in colmap.load_model(path, cache_dir=cache_dir).names]
-  if not any(t in b for b in bases for t in _ROBUSTNERF_TOKENS):
-    return ()
-  return tuple(t for t in TRAIN_SPLITS if any(t in b for b in bases))
+  tokens = _name_tokens(colmap.load_model(path, cache_dir=cache_dir).names)
+  return tuple(t for t in TRAIN_SPLITS if any(t in found for found in tokens))
 
 
 def _views_arrays(prefix: str, views: Views) -> dict[str, np.ndarray]:
@@ -321,9 +323,6 @@ def _load_pack(path: str, downscale: int, train_split: str) -> Scene:
   if not os.path.isfile(path):
     raise FileNotFoundError(f"scene pack {path} does not exist; write it with "
                             "experiments/prepare.py --prepare=pack.")
-  if train_split not in TRAIN_SPLITS:
-    raise ValueError(f"train_split must be one of {TRAIN_SPLITS}, got "
-                     f"{train_split!r}.")
   try:
     with np.load(path) as npz:
       data = {k: npz[k] for k in npz.files}
