@@ -25,6 +25,19 @@ def test_time_calls_counts_and_rounds():
   assert fixed.ms() == {"compile_s": 1.23, "wall_ms": 2.0, "cpu_ms": 0.5}
 
 
+def test_time_steps_threads_the_state():
+  seen = []
+
+  def step(state, inc):
+    seen.append(int(state))
+    return state + inc, state * 10
+
+  t = benchmark.time_steps(step, jnp.int32(0), jnp.int32(1), repeats=3)
+  assert seen == [0, 1, 2, 3]          # each call gets the previous state
+  assert int(t.out) == 0               # the first call's second output
+  assert len(t.wall_s) == len(t.cpu_s) == 3
+
+
 def test_frustum_scene_projects_inside_the_image():
   params, alive, cam = benchmark.frustum_scene(200, 64, 48, 2.0, 20.0)
   assert params.means.shape == (200, 3) and bool(alive.all())
