@@ -1,7 +1,6 @@
 """One error path for every script: bad input ends in one line on stderr."""
 
 import contextlib
-import ctypes
 import errno
 import os
 import shutil
@@ -34,10 +33,6 @@ _OS_FIXES = {
     errno.EISDIR: "pass a file, not a folder",
     errno.ENOTDIR: "pass a folder, not a file",
 }
-# glibc mallopt parameters (malloc.h) and the values scripts set: one
-# arena, no mmap for large blocks, and no trimming below 2 GiB of free heap.
-_M_TRIM_THRESHOLD, _M_MMAP_MAX, _M_ARENA_MAX = -1, -4, -8
-_KEEP_FREE_BYTES = 2**31 - 1
 _DEBUG_FLAG = "debug"
 _DEBUG_ALIAS = "verbose"
 
@@ -127,31 +122,7 @@ def run(main: Callable[[list[str]], Any],
     argv: the command line, default sys.argv.
   """
   _define_debug_flag()
-  reuse_freed_memory()
   app.run(guarded(main), argv=argv, flags_parser=_parse_flags)
-
-
-def reuse_freed_memory() -> bool:
-  """Keeps freed heap in the process (glibc), so XLA reuses it every step.
-
-  XLA:CPU allocates each call's temporaries as one block (174 MB for the
-  bird ds4 train step at 220k Gaussians) from a worker thread. glibc serves
-  such a block by mmap and unmaps it on free, so every step faults all its
-  pages in again: 44k page faults and ~170 ms of system time per step on
-  the 2-core box (BUILD_NOTES, session 12). With one arena, no mmap and no
-  trimming, the block is reused: the same step measured 0-5k faults and
-  10-15 % less wall time, the same bits. The price is that the process
-  keeps its peak heap until it exits. Call before JAX starts its threads;
-  a no-op (False) where the C library has no mallopt.
-  """
-  try:
-    libc = ctypes.CDLL(None)
-    mallopt = libc.mallopt
-  except (OSError, AttributeError):
-    return False
-  return all(mallopt(param, value) == 1 for param, value in (
-      (_M_ARENA_MAX, 1), (_M_MMAP_MAX, 0),
-      (_M_TRIM_THRESHOLD, _KEEP_FREE_BYTES)))
 
 
 def no_arguments(argv: list[str]) -> None:
