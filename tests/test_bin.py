@@ -73,6 +73,29 @@ class BinTest(absltest.TestCase):
       np.testing.assert_array_equal(
           gauss[start[t]:start[t] + count[t]], ref[t], err_msg=f"tile {t}")
 
+  def test_depth_order_is_the_stable_argsort(self):
+    """Distinct depths, pairs, runs up to and past _MAX_TIE, +-0, culled."""
+    rng = np.random.default_rng(1)
+    # pylint: disable=protected-access
+    longest = rasterize._MAX_TIE
+    order = jax.jit(rasterize._depth_order)
+    # pylint: enable=protected-access
+    cases = {
+        "distinct": rng.uniform(0.2, 10.0, 3000),
+        "pairs": np.repeat(rng.uniform(0.2, 10.0, 1500), 2),
+        "runs at the limit": np.repeat(rng.uniform(1.0, 2.0, 100), longest),
+        "runs past the limit": np.repeat(rng.uniform(1.0, 2.0, 100),
+                                         longest + 1),
+        "signed zeros": rng.choice([0.0, -0.0, 1.0, -1.0], 1000),
+    }
+    for name, depths in cases.items():
+      depths = jnp.asarray(rng.permutation(depths), jnp.float32)
+      for culled in (0.0, 0.4):
+        valid = jnp.asarray(rng.random(depths.shape[0]) >= culled)
+        want = np.argsort(np.where(valid, depths, np.inf), kind="stable")
+        np.testing.assert_array_equal(order(depths, valid), want,
+                                      err_msg=f"{name}, {culled} culled")
+
 
 if __name__ == "__main__":
   absltest.main()
