@@ -198,13 +198,10 @@ def _bin(proj: project_lib.Projected, grid: blend_lib.Grid):
     m = i * block + jnp.arange(block, dtype=jnp.int32)
     # owner[m]: depth rank of the Gaussian that emits intersection m, i.e.
     # the last rank whose start is <= m (zero-count ranks share the start
-    # of the next rank, so they are never the last): the ranks starting
-    # before this block plus a prefix count of those starting inside it.
-    base = i * block
-    inside = jnp.where(starts >= base, starts - base, block)
-    marks = jnp.zeros(block, jnp.int32).at[inside].add(1, mode="drop")
-    before = jnp.sum(starts < base, dtype=jnp.int32)
-    owner = jnp.clip(before + jnp.cumsum(marks) - 1, 0, n - 1)       # [B]
+    # of the next rank, so they are never the last). `starts` is sorted:
+    # a binary search, O(B log N) per block, where a scatter of all N
+    # starts cost O(N) per block.
+    owner = jnp.clip(jnp.searchsorted(starts, m, side="right") - 1, 0, n - 1)
     local = m - starts[owner]
     g = order[owner]
     width = jnp.maximum(span[g, 0], 1)
