@@ -84,16 +84,12 @@ def time_steps(step: Callable, state, *args, repeats: int) -> Timing:
   state, as the training loop calls it: each call gets the state the
   previous one returned, so no call pays for fresh output buffers.
   Timing.out is the first call's `out`."""
-  t0 = time.perf_counter()
-  state, out = jax.block_until_ready(step(state, *args))
-  first = time.perf_counter() - t0
-  wall, cpu = [], []
-  for _ in range(repeats):
-    t0, c0 = time.perf_counter(), time.process_time()
-    state = jax.block_until_ready(step(state, *args))[0]
-    wall.append(time.perf_counter() - t0)
-    cpu.append(time.process_time() - c0)
-  return Timing(out, first, wall, cpu)
+  carry = [state]
+
+  def call():
+    carry[0], out = jax.block_until_ready(step(carry[0], *args))
+    return out
+  return time_calls(call, repeats=repeats)
 
 
 def frustum_scene(n: int, width: int, height: int, r_lo: float, r_hi: float,

@@ -123,6 +123,7 @@ def _depth_order(depths: jax.Array, valid: jax.Array) -> jax.Array:
   key = jnp.where(valid, ordered, _INVALID_KEY + index.astype(jnp.uint32))
   first = jnp.searchsorted(jnp.sort(key), key).astype(jnp.int32)
   tie = jnp.zeros(n, jnp.int32).at[first].add(1)[first]   # rows per key
+  longest = jnp.max(tie)
 
   def by_key():
     def place(carry):
@@ -133,11 +134,11 @@ def _depth_order(depths: jax.Array, valid: jax.Array) -> jax.Array:
       now = left & (low[first] == index)
       return k + 1, jnp.where(now, k, offset), left & ~now
     _, offset, _ = jax.lax.while_loop(
-        lambda carry: carry[0] < jnp.max(tie), place,
+        lambda carry: carry[0] < longest, place,
         (jnp.int32(0), jnp.zeros(n, jnp.int32), tie > 1))
     return jnp.zeros(n, jnp.int32).at[first + offset].set(
         index, unique_indices=True)
-  return jax.lax.cond(jnp.max(tie) <= _MAX_TIE, by_key, argsort)
+  return jax.lax.cond(longest <= _MAX_TIE, by_key, argsort)
 
 
 def _bin(proj: project_lib.Projected, grid: blend_lib.Grid):
