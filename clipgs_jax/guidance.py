@@ -142,9 +142,11 @@ def validate(sem: config_lib.SemanticConfig) -> None:
     problems.append(f"beta={sem.beta} must be positive")
   if not sem.lambda_c >= 0:
     problems.append(f"lambda_c={sem.lambda_c} must be >= 0")
-  if sem.enabled and sem.lambda_c == 0 and not sem.prune:
-    problems.append("lambda_c=0 with prune off leaves guidance nothing to "
-                    "do; use scorer='off' for vanilla 3DGS")
+  if (sem.enabled and sem.lambda_c == 0 and not sem.prune
+      and not sem.loss_masking):
+    problems.append("lambda_c=0 with prune and loss_masking off leaves "
+                    "guidance nothing to do; use scorer='off' for vanilla "
+                    "3DGS")
   for name in ("accumulate_start", "reg_start", "prune_start"):
     if getattr(sem, name) < 0:
       problems.append(f"{name}={getattr(sem, name)} must be >= 0")

@@ -111,6 +111,15 @@ class ScheduleTest(parameterized.TestCase):
       guidance.validate(config.SemanticConfig(
           scorer="clip", evidence="pixel", static_prompts=()))
 
+  def test_loss_masking_alone_is_valid(self):
+    # Robust-3DGS-style masking without the opacity loss or pruning is a
+    # run of its own (BUILD_NOTES, session 13); without masking it is not.
+    alone = dataclasses.replace(ORACLE, evidence="pixel", lambda_c=0.0,
+                                prune=False, loss_masking=True)
+    guidance.validate(alone)
+    with self.assertRaisesRegex(ValueError, "leaves guidance nothing"):
+      guidance.validate(dataclasses.replace(alone, loss_masking=False))
+
   def test_tau_edges_are_valid(self):
     guidance.validate(dataclasses.replace(ORACLE, tau=0.0))
     guidance.validate(dataclasses.replace(ORACLE, tau=1.0))
