@@ -186,24 +186,38 @@ def test_prescaled_folder_is_used(tmp_path):
 def test_masks(tmp_path):
   names = ["1extra0.png"] + [f"2clutter{i}.png" for i in range(3)]
   write_scene(tmp_path / "s", names, cams=((64, 48),))
-  masks = np.zeros((3, 48, 64), bool)
-  masks[0, 10:20, 30:40] = True
-  masks[2, :, :3] = True
+  masks = np.zeros((3, 48, 64), np.float32)
+  masks[0, 10:20, 30:40] = 1.0
+  masks[1, 11, 31] = 1.0       # one full-resolution pixel of a 2x2 block
+  masks[1, 30:32, 40:42] = 0.4  # grey under MASK_THRESHOLD: not transient
+  masks[2, :, :3] = 1.0
   for i in range(3):
     images.write_png(str(tmp_path / "s" / "masks" / f"2clutter{i}.png"),
                      masks[i])
   s = _load(tmp_path / "s")
-  np.testing.assert_array_equal(s.train.masks, masks)
+  np.testing.assert_array_equal(s.train.masks, masks >= scene.MASK_THRESHOLD)
   assert s.test.masks is None
   small = _load(tmp_path / "s", downscale=2)
   assert small.train.masks.shape == (3, 24, 32)
-  # 2x2 blocks: columns 0-1 are fully masked, column 2 is half (>= 0.5).
+  # A downscaled pixel is transient where any of its 2x2 source pixels is:
+  # columns 0-1 (full), column 2 (half of the block is masked column 2)...
   np.testing.assert_array_equal(small.train.masks[2, 0, :3],
                                 [True, True, False])
+  # ... and the block holding the single masked pixel (a quarter of it).
+  assert small.train.masks[1].sum() == 1 and small.train.masks[1, 5, 15]
   assert small.train.masks[0].sum() == 25
   os.remove(tmp_path / "s" / "masks" / "2clutter1.png")
   with pytest.raises(FileNotFoundError, match="2clutter1.png"):
     _load(tmp_path / "s")
+
+
+def test_mask_of_the_wrong_size(tmp_path):
+  names = ["1extra0.png", "2clutter0.png"]
+  write_scene(tmp_path / "s", names, cams=((64, 48),))
+  images.write_png(str(tmp_path / "s" / "masks" / "2clutter0.png"),
+                   np.zeros((24, 32), bool))
+  with pytest.raises(ValueError, match="2clutter0.png is 32x24 pixels"):
+    _load(tmp_path / "s", downscale=2)
 
 
 def test_camera_at(tmp_path):
