@@ -200,7 +200,8 @@ def test_masks(tmp_path):
   small = _load(tmp_path / "s", downscale=2)
   assert small.train.masks.shape == (3, 24, 32)
   # A downscaled pixel is transient where any of its 2x2 source pixels is:
-  # columns 0-1 (full), column 2 (half of the block is masked column 2)...
+  # block column 0 (source columns 0-1, both masked) and block column 1
+  # (source columns 2-3, column 2 masked), not block column 2 (4-5)...
   np.testing.assert_array_equal(small.train.masks[2, 0, :3],
                                 [True, True, False])
   # ... and the block holding the single masked pixel (a quarter of it).

@@ -210,9 +210,7 @@ def _load_masks(scene_path, names, downscale, shape):
       raise ValueError(f"mask {path} is {full.shape[1]}x{full.shape[0]} "
                        f"pixels, which gives no {width}x{height} image at "
                        f"downscale {downscale}; make it its image's size.")
-    coverage = (images.resize_area(full, width, height) if downscale > 1
-                else full)
-    masks.append(coverage > 0)
+    masks.append(images.resize_area(full, width, height) > 0)
   return np.stack(masks)
 
 
