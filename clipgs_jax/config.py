@@ -147,6 +147,12 @@ class SemanticConfig:
   #   False: the raw map, in the render's own pass
   loss_masking: bool = False   # pixel evidence: weight the photometric loss
   #   per pixel by 1 - m (robust-3DGS style); off in the paper
+  reset_quiet: int = 0         # steps after each opacity reset without
+  #   the opacity loss or eq. 13 prune (0: the paper). Adam's opacity
+  #   moments are zeroed at a reset, so until a row's photometric gradient
+  #   reaches them the small, steady loss gradient moves its logit at
+  #   several times the learning rate, under min_opacity (BUILD_NOTES,
+  #   session 15)
   max_prune_fraction: float = 0.5  # a prune event that would remove more
   #   of the alive Gaussians than this removes none (1.0: the paper, no guard)
   dense_input_size: int = 448  # clip + pixel: CLIP input side, a multiple

@@ -275,6 +275,21 @@ def due(step: int, cfg: config_lib.Config) -> tuple[bool, bool]:
   return do_densify, do_reset
 
 
+def since_reset_within(step, window: int, cfg: config_lib.Config):
+  """Whether the last opacity reset (densify.due) came at most `window`
+  steps before `step` finished steps: 0 <= step - R < window.
+
+  Works on a Python int (host) and on a traced int32 (inside the step).
+  """
+  d = cfg.densify
+  every = d.opacity_reset_every
+  if every <= 0 or window <= 0:
+    return False
+  last = (step // every) * every
+  return ((last > 0) & (last < min(d.stop, cfg.train.steps))
+          & (step - last < window))
+
+
 @functools.lru_cache(maxsize=None)
 def make_densify(cfg: config_lib.Config):
   """Jitted densify(state, key) -> (state, info); the state is donated."""

@@ -147,7 +147,8 @@ def validate(sem: config_lib.SemanticConfig) -> None:
     problems.append("lambda_c=0 with prune and loss_masking off leaves "
                     "guidance nothing to do; use scorer='off' for vanilla "
                     "3DGS")
-  for name in ("accumulate_start", "reg_start", "prune_start"):
+  for name in ("accumulate_start", "reg_start", "prune_start",
+               "reset_quiet"):
     if getattr(sem, name) < 0:
       problems.append(f"{name}={getattr(sem, name)} must be >= 0")
   for name in ("prune_every", "score_every"):
@@ -250,11 +251,14 @@ def scores_due(step: jax.Array, sem: config_lib.SemanticConfig) -> jax.Array:
 
 def opacity_regularizer(stats: semantic.SemanticStats,
                         opacity_logits: jax.Array, alive: jax.Array,
-                        step: jax.Array, sem: config_lib.SemanticConfig
+                        step: jax.Array, cfg: config_lib.Config
                         ) -> jax.Array:
-  """Eqs. 11-12 from reg_start on, 0 before."""
+  """Eqs. 11-12 from reg_start on, 0 before and for reset_quiet steps
+  after each opacity reset."""
+  sem = cfg.semantic
   loss = semantic.opacity_loss(stats, opacity_logits, alive, sem.lambda_c)
-  return jnp.where(step >= sem.reg_start, loss, 0.0)
+  quiet = densify.since_reset_within(step, sem.reset_quiet, cfg)
+  return jnp.where((step >= sem.reg_start) & ~quiet, loss, 0.0)
 
 
 def score_and_accumulate(stats: semantic.SemanticStats, image: jax.Array,
@@ -301,11 +305,14 @@ def prune_due(step: int, cfg: config_lib.Config) -> bool:
   Never after the last step, as densification (densify.due): what crossed
   tau since the last prune stays in the final model, down-weighted by the
   opacity loss, and `experiments/report.py --report=masks` can still show it.
+  Held after a reset at R while R < step <= R + reset_quiet: the faint-row
+  rule would read the reset's alpha, and the opacity loss is off there.
   """
   sem = cfg.semantic
   since = step - sem.prune_start
+  quiet = densify.since_reset_within(step - 1, sem.reset_quiet, cfg)
   return (sem.enabled and sem.prune and 0 < step < cfg.train.steps
-          and since >= 0 and since % sem.prune_every == 0)
+          and since >= 0 and since % sem.prune_every == 0 and not quiet)
 
 
 def prune(state, *, cfg: config_lib.Config):

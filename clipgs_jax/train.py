@@ -184,8 +184,7 @@ def train_step(state: TrainState, batch: Batch, scorer=None, *,
                                      cfg.train.lambda_dssim, loss_weight)
     if scorer is not None:
       terms["semantic_loss"] = guidance.opacity_regularizer(
-          state.semantic, params.opacity_logits, state.alive, step,
-          cfg.semantic)
+          state.semantic, params.opacity_logits, state.alive, step, cfg)
       loss = loss + terms["semantic_loss"]
     return loss, (out, proj, terms)
 

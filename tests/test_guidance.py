@@ -81,6 +81,33 @@ class ScheduleTest(parameterized.TestCase):
     self.assertFalse(any(guidance.prune_due(s, reg_only)
                          for s in range(20_001)))
 
+  def test_reset_quiet(self):
+    # Resets after 3000 and 6000 finished steps (not at 9000 = steps).
+    cfg = config.Config(
+        train=config.TrainConfig(steps=9000),
+        densify=config.DensifyConfig(opacity_reset_every=3000),
+        semantic=config.SemanticConfig(scorer="oracle", reg_start=0,
+                                       prune_start=250, prune_every=250,
+                                       reset_quiet=500))
+    due = [s for s in range(9001) if guidance.prune_due(s, cfg)]
+    # The prune right before a reset stays; 3250, 3500 and 6250, 6500 go.
+    expected = [s for s in range(250, 9000, 250)
+                if s not in (3250, 3500, 6250, 6500)]
+    self.assertEqual(due, expected)
+    logits = jnp.zeros(4)
+    stats = semantic.SemanticStats(acc=jnp.ones(4), weight=jnp.ones(4),
+                                   n=jnp.ones(4))
+    alive = jnp.ones(4, bool)
+    loss = jax.jit(lambda step: guidance.opacity_regularizer(
+        stats, logits, alive, step, cfg))
+    on = [s for s in (2999, 3000, 3499, 3500, 5999, 6000, 6499, 6500, 8999)
+          if float(loss(jnp.int32(s))) > 0]
+    self.assertEqual(on, [2999, 3500, 5999, 6500, 8999])
+    paper = dataclasses.replace(
+        cfg, semantic=dataclasses.replace(cfg.semantic, reset_quiet=0))
+    self.assertEqual([s for s in range(9001) if guidance.prune_due(s, paper)],
+                     list(range(250, 9000, 250)))
+
   def test_scaled_schedule(self):
     sem = config.SemanticConfig().scaled_to(2000)
     # 500/2000/5000/1000 of 20k steps -> one tenth.
@@ -91,6 +118,7 @@ class ScheduleTest(parameterized.TestCase):
       ("scorer", "bogus", "scorer="), ("tau", 1.5, "tau="),
       ("tau", -0.1, "tau="), ("beta", 0.0, "beta="),
       ("score_every", 0, "score_every="), ("prune_every", 0, "prune_every="),
+      ("reset_quiet", -1, "reset_quiet="),
       ("oracle_saturation", 0.0, "oracle_saturation="),
       ("distractor_prompts", ("a photo of a person", " "), "prompt is empty"),
       ("evidence", "patch", "evidence="), ("tau_p", 1.5, "tau_p="),
