@@ -260,6 +260,12 @@ def reset_opacity(state, *, cfg: config_lib.Config):
                                  state.alive.shape[0]))
 
 
+def _control_active(step, cfg: config_lib.Config):
+  """Density control (densify, reset) may run after `step` finished steps:
+  0 < step < min(densify.stop, train.steps). An int or a traced int32."""
+  return (0 < step) & (step < min(cfg.densify.stop, cfg.train.steps))
+
+
 def due(step: int, cfg: config_lib.Config) -> tuple[bool, bool]:
   """Host-side: (densify?, reset opacity?) after `step` finished steps.
 
@@ -268,7 +274,7 @@ def due(step: int, cfg: config_lib.Config) -> tuple[bool, bool]:
   after `start`, every `every` steps; reset every opacity_reset_every.
   """
   d = cfg.densify
-  active = 0 < step < min(d.stop, cfg.train.steps)
+  active = _control_active(step, cfg)
   do_densify = active and step > d.start and step % d.every == 0
   do_reset = (active and d.opacity_reset_every > 0
               and step % d.opacity_reset_every == 0)
@@ -281,13 +287,11 @@ def since_reset_within(step, window: int, cfg: config_lib.Config):
 
   Works on a Python int (host) and on a traced int32 (inside the step).
   """
-  d = cfg.densify
-  every = d.opacity_reset_every
+  every = cfg.densify.opacity_reset_every
   if every <= 0 or window <= 0:
     return False
   last = (step // every) * every
-  return ((last > 0) & (last < min(d.stop, cfg.train.steps))
-          & (step - last < window))
+  return _control_active(last, cfg) & (step - last < window)
 
 
 @functools.lru_cache(maxsize=None)
