@@ -1,6 +1,7 @@
 """Frozen configuration dataclasses with the paper's and 3DGS's defaults."""
 
 import dataclasses
+import functools
 import importlib.util
 import os
 import types
@@ -207,6 +208,72 @@ class Config:
   data: DataConfig = DataConfig()         # scene, downscale, split
   eval: EvalConfig = EvalConfig()         # test metrics, curve
   scene_extent: float = 0.0    # camera-centre radius x 1.1; 0 = from scene
+
+
+class _HostOnly:
+  """Stands in for a config field that compiled code must not read.
+
+  Arithmetic, attribute access and truth tests on it raise, so a traced
+  function that starts reading such a field fails at trace time instead of
+  silently using one run's value for all the runs that share its program.
+  """
+
+  def __bool__(self):
+    raise TypeError("a host-only config field was read by compiled code; "
+                    "remove it from config.compiled_part's dropped fields")
+
+  def __repr__(self):
+    return "HOST_ONLY"
+
+
+HOST_ONLY = _HostOnly()
+# Fields that only the host loop reads: when to log, evaluate and checkpoint,
+# the seed (it makes the initial PRNG key, which the state carries), the
+# scene and split, and the test metrics.
+_HOST_TRAIN_FIELDS = ("seed", "log_every", "eval_every", "checkpoint_every")
+# SemanticConfig fields that the train step does not read: the prune rule
+# (its own jitted function, guidance.prune), and what builds the scorer
+# (guidance.make_scorer), which the step gets as an argument.
+SEMANTIC_FIELDS_NOT_IN_STEP = (
+    "prune", "tau", "tau_p", "n_min", "alpha_min", "prune_start",
+    "prune_every", "max_prune_fraction", "static_prompts", "clip_variant",
+    "dense_input_size", "oracle_saturation")
+
+
+def compiled_part(cfg: Config, semantic_dropped: tuple[str, ...] = ()
+                  ) -> Config:
+  """`cfg` with the fields its compiled functions do not read as HOST_ONLY.
+
+  Dropped: data, eval, the host fields of train, and the `semantic_dropped`
+  fields of semantic. The jitted step, densify and prune functions are
+  cached by this (`cache_by_compiled_part`), so runs that differ only there
+  (a table's vanilla and clean rows; two runs that differ in tau) share one
+  compiled program instead of compiling the same program again.
+  """
+  return dataclasses.replace(
+      cfg, data=HOST_ONLY, eval=HOST_ONLY,
+      train=dataclasses.replace(
+          cfg.train, **dict.fromkeys(_HOST_TRAIN_FIELDS, HOST_ONLY)),
+      semantic=dataclasses.replace(
+          cfg.semantic, **dict.fromkeys(semantic_dropped, HOST_ONLY)))
+
+
+def cache_by_compiled_part(semantic_dropped: tuple[str, ...] = ()):
+  """Decorator factory: caches `make(cfg)` by `compiled_part(cfg, ...)`.
+
+  `make` receives the compiled part; `.cache_clear()` works as for
+  functools.lru_cache.
+  """
+  def decorate(make):
+    cached = functools.lru_cache(maxsize=None)(make)
+
+    @functools.wraps(make)
+    def wrapper(cfg: Config):
+      return cached(compiled_part(cfg, semantic_dropped))
+
+    wrapper.cache_clear = cached.cache_clear
+    return wrapper
+  return decorate
 
 
 def to_dict(cfg: Config) -> dict:

@@ -294,20 +294,20 @@ def since_reset_within(step, window: int, cfg: config_lib.Config):
   return _control_active(last, cfg) & (step - last < window)
 
 
-@functools.lru_cache(maxsize=None)
+@config_lib.cache_by_compiled_part()
 def make_densify(cfg: config_lib.Config):
   """Jitted densify(state, key) -> (state, info); the state is donated."""
   return jax.jit(functools.partial(densify, cfg=cfg), donate_argnums=(0,))
 
 
-@functools.lru_cache(maxsize=None)
+@config_lib.cache_by_compiled_part()
 def make_reset_opacity(cfg: config_lib.Config):
   """Jitted reset_opacity(state) -> state; the state is donated."""
   return jax.jit(functools.partial(reset_opacity, cfg=cfg),
                  donate_argnums=(0,))
 
 
-@functools.lru_cache(maxsize=None)
+@config_lib.cache_by_compiled_part()
 def make_count_requests(cfg: config_lib.Config):
   """Jitted count_requests(state) -> (requests, free slots)."""
   return jax.jit(functools.partial(count_requests, cfg=cfg))

@@ -365,7 +365,7 @@ def prune(state, *, cfg: config_lib.Config):
   return state, info
 
 
-@functools.lru_cache(maxsize=None)
+@config_lib.cache_by_compiled_part()
 def make_prune(cfg: config_lib.Config):
   """Jitted prune(state) -> (state, info); the state is donated."""
   return jax.jit(functools.partial(prune, cfg=cfg), donate_argnums=(0,))

@@ -262,14 +262,17 @@ def _reproduced_evidence(due, proj, cam, bg, cfg, evidence_map, image,
       lambda: jnp.zeros_like(proj.depths))
 
 
-@functools.lru_cache(maxsize=None)
+@config_lib.cache_by_compiled_part(
+    semantic_dropped=config_lib.SEMANTIC_FIELDS_NOT_IN_STEP)
 def make_train_step(cfg: config_lib.Config):
   """Jitted train_step(state, batch, scorer=None) -> (state, metrics).
 
   The state is donated; the scorer (frozen CLIP weights or masks) is not.
 
-  Cached per config, so every caller with the same config shares one
-  compiled step (it recompiles only when the capacity changes).
+  Cached by the config's compiled part, so every caller whose config
+  differs only in what the step does not read (data, eval, seed, cadences,
+  the prune rule) shares one compiled step (it recompiles only when the
+  capacity changes).
   """
   return jax.jit(functools.partial(train_step, cfg=cfg), donate_argnums=(0,))
 

@@ -18,6 +18,7 @@ from clipgs_jax import config
 from clipgs_jax import densify
 from clipgs_jax import evaluation
 from clipgs_jax import gaussians
+from clipgs_jax import guidance
 from clipgs_jax import loop
 from clipgs_jax import sh
 from clipgs_jax import train
@@ -217,6 +218,41 @@ class EndToEndTest(absltest.TestCase):
     again = evaluation.evaluate(state.params, state.alive, scene.test, result.cfg)
     np.testing.assert_allclose(again["mean/psnr"], curve[-1]["test_psnr"],
                                rtol=1e-6)
+
+  def test_runs_that_differ_on_the_host_share_one_step(self):
+    # Another seed, split, curve and cadence: the same compiled functions
+    # (a table's vanilla and clean rows compile their step once).
+    host = dataclasses.replace(
+        TEST_CFG, data=config.DataConfig(scene="elsewhere",
+                                         train_split="clean"),
+        eval=config.EvalConfig(curve_points=3),
+        train=dataclasses.replace(TEST_CFG.train, seed=7, log_every=5,
+                                  eval_every=0, checkpoint_every=9))
+    for make in (train.make_train_step, densify.make_densify,
+                 densify.make_reset_opacity, densify.make_count_requests):
+      self.assertIs(make(host), make(TEST_CFG), make.__name__)
+    # The prune rule is not the step's: the step is shared, the prune not.
+    oracle = config.SemanticConfig(scorer="oracle", evidence="pixel")
+    strict = dataclasses.replace(TEST_CFG, semantic=oracle)
+    lenient = dataclasses.replace(TEST_CFG, semantic=dataclasses.replace(
+        oracle, tau_p=0.9, max_prune_fraction=1.0))
+    self.assertIs(train.make_train_step(strict),
+                  train.make_train_step(lenient))
+    self.assertIsNot(guidance.make_prune(strict), guidance.make_prune(lenient))
+    # What the step computes with is not shared.
+    dssim = dataclasses.replace(
+        TEST_CFG, train=dataclasses.replace(TEST_CFG.train, lambda_dssim=0.5))
+    self.assertIsNot(train.make_train_step(dssim),
+                     train.make_train_step(TEST_CFG))
+    # A dropped field fails loudly where compiled code would read it (the
+    # fits in this file trace every function above with dropped fields).
+    part = config.compiled_part(host)
+    self.assertIs(part.data, config.HOST_ONLY)
+    with self.assertRaisesRegex(TypeError, "host-only config field"):
+      bool(part.train.seed)
+    with self.assertRaises(TypeError):
+      part.train.eval_every + 1  # pylint: disable=pointless-statement
+    self.assertEqual(part.train.steps, TEST_CFG.train.steps)
 
 
 if __name__ == "__main__":
