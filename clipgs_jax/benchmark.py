@@ -169,7 +169,8 @@ def _budget(params, alive, cam, chunk_size: int, tile_size: int) -> int:
 
 def rasterizer(n: int, width: int, height: int, variant: str, *,
                radius_px: tuple[float, float], tile_budget: int = 0,
-               chunk_size: int = 32, lanes: int = 0, tile_size: int = 16,
+               chunk_size: int = 32, lanes: int = 0,
+               tile_size: int = config_lib.RenderConfig.tile_size,
                repeats: int = 5, max_gib: float = 12.0) -> dict:
   """The tile rasterizer's forward and forward + backward on frustum_scene.
 
@@ -292,7 +293,9 @@ def step_stages(cfg: config_lib.Config, batch, params, alive, view: int,
   timed("adam", jax.jit(adam, donate_argnums=(0,)),
         copy((state.params, state.opt_state)), state.params,
         timer=time_steps)
-  timed("train_step", train.make_train_step(cfg), state, batch,
+  # A copy: `state` shares its arrays with the caller's, which may time the
+  # same state again (one sample per count with --checkpoint).
+  timed("train_step", train.make_train_step(cfg), copy(state), batch,
         timer=time_steps)
   result.update(num_overflow=int(overflow), max_tile_count=int(max_count))
   result.update(rasterize.blend_stats(proj, cam, rcfg))

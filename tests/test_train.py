@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from absl.testing import absltest
 
+from clipgs_jax import benchmark
 from clipgs_jax import camera
 from clipgs_jax import config
 from clipgs_jax import densify
@@ -218,6 +219,20 @@ class EndToEndTest(absltest.TestCase):
     again = evaluation.evaluate(state.params, state.alive, scene.test, result.cfg)
     np.testing.assert_allclose(again["mean/psnr"], curve[-1]["test_psnr"],
                                rtol=1e-6)
+
+  def test_step_benchmark_leaves_the_callers_state_usable(self):
+    # bench.py --bench=step --checkpoint times one state once per count;
+    # the donated train step must not delete the caller's arrays.
+    scene = synthetic_scene()
+    cfg = train.resolve(TEST_CFG, scene)
+    state = train.initial_state(cfg, scene)
+    batch = train.make_batch(scene.train)
+    means = np.asarray(state.params.means)
+    out = benchmark.step_stages(cfg, batch, state.params, state.alive,
+                                view=0, repeats=1)
+    self.assertGreater(out["train_step"]["wall_ms"], 0)
+    self.assertEqual(out["n"], int(np.sum(np.asarray(state.alive))))
+    np.testing.assert_array_equal(np.asarray(state.params.means), means)
 
   def test_runs_that_differ_on_the_host_share_one_step(self):
     # Another seed, split, curve and cadence: the same compiled functions
