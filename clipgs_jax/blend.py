@@ -28,8 +28,8 @@ MAX_ALPHA = 0.99               # cap so 1 / (1 - alpha) stays <= 100
 # A pixel stops blending when its transmittance would fall below this; the
 # remaining light cannot change an 8-bit colour visibly (reference 3DGS).
 TRANSMITTANCE_THRESHOLD = 1e-4
-# Automatic lane count: a sixth of the tiles. On the bird ds4 view (135
-# tiles, lists of mean 198 / max 1,206 entries) the longest list sets the
+# Automatic lane count: a sixth of the tiles. On the bird ds4 view at 16x16
+# (135 tiles, lists of mean 198 / max 1,206 entries) the longest list sets the
 # rounds (38); a sixth keeps them (40) with 23 lanes instead of 34, so the
 # share of executed pixel evaluations that a tile needed rises from 0.645 to
 # 0.906. Blend time did not move (a round's cost is half fixed overhead);
@@ -46,7 +46,7 @@ class Grid:
   tile_budget: int
   chunk_size: int
   lanes: int = 0               # 0: automatic (num_tiles / 6)
-  tile: int = 16               # tile side in pixels
+  tile: int = 8                # tile side in pixels (RenderConfig.tile_size)
 
   @property
   def pixels_per_tile(self) -> int:

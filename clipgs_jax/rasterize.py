@@ -1,4 +1,4 @@
-"""Tile rasterizer: bin splats into 16x16 tiles, depth-sort, alpha-blend.
+"""Tile rasterizer: bin splats into square tiles, depth-sort, alpha-blend.
 
 Binning and sorting live here; the blend (`blend.py`) is a `jax.custom_vjp`
 whose work follows each tile's own list. Projection (`project.py`) is plain

@@ -55,7 +55,8 @@ _TILE_BUDGET = flags.DEFINE_integer(
     "two >= the longest tile list; step and semantic 8192.")
 _CHUNK = flags.DEFINE_integer("chunk_size", 32, "B.")
 _LANES = flags.DEFINE_integer("lanes", 0, "Blend lanes; 0 = automatic.")
-_TILE_SIZE = flags.DEFINE_integer("tile_size", 16, "Tile side, pixels.")
+_TILE_SIZE = flags.DEFINE_integer(
+    "tile_size", config_lib.RenderConfig.tile_size, "Tile side, pixels.")
 _SIZES = flags.DEFINE_list("sizes", ["256x256", "512x384"],
                            "rasterizer: image sizes WxH.")
 _VARIANTS = flags.DEFINE_list("variants", ["custom_vjp", "autodiff"],
