@@ -159,10 +159,10 @@ class ExtremeTest(parameterized.TestCase):
     cam = synthetic.front_camera(16, 16, focal=20.0)
     p = synthetic.random_params(n, degree=0, spread=0.3,
                                 log_scale=(-2.5, -2.0))
-    cfg = config.RenderConfig(tile_budget=8, chunk_size=8)
+    cfg = config.RenderConfig(tile_budget=8, chunk_size=8, tile_size=16)
     out, _ = self.check(p, jnp.ones(n, bool), cam=cam, cfg=cfg,
                         compare=False)
-    # One tile: every valid Gaussian beyond the 8 nearest is dropped.
+    # One 16x16 tile: every valid Gaussian beyond the 8 nearest is dropped.
     self.assertGreater(int(out.max_tile_count), 8)
     self.assertEqual(int(out.num_overflow), int(out.max_tile_count) - 8)
     # The kept ones are the 8 nearest, so the result equals the reference

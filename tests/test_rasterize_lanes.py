@@ -86,7 +86,8 @@ class LaneTest(parameterized.TestCase):
     cam = synthetic.front_camera(37, 29)
     params = synthetic.random_params(60, seed=4, degree=0)
     alive = jnp.ones(60, bool)
-    cfg = config.RenderConfig(tile_budget=64, chunk_size=8, lanes=2)
+    cfg = config.RenderConfig(tile_budget=64, chunk_size=8, lanes=2,
+                              tile_size=16)
     proj = project.project(params, alive, cam, near=cfg.near, sh_degree=0)
     stats = rasterize.blend_stats(proj, cam, cfg)
     self.assertEqual(stats["lanes"], 2)
