@@ -17,9 +17,11 @@ TILE_BUDGET = 8192    # no dropped tile-list entries at downscale 8
 # A run killed mid-way (the shared box's OOM killer took two 2,500-step
 # runs in session 7) resumes from its last checkpoint, not from step 0.
 CHECKPOINT_EVERY = 500
-# Every table row in BUILD_NOTES ran with 16x16 tiles; the library default
-# became 8x8 in session 18 (faster, but other trajectories), so the table
-# setting keeps 16 until the table is re-run as a whole.
+# The table rows in BUILD_NOTES through session 18 ran with 16x16 tiles; the
+# library default became 8x8 in session 18 (faster, but other trajectories),
+# so this setting keeps 16. The 2,500-step queue passes
+# --config.render.tile_size=8 from session 19 on and re-runs its four 16x16
+# rows at 8x8 (BUILD_NOTES, session 19).
 TILE_SIZE = 16
 
 
