@@ -5,6 +5,7 @@
       [--dry_run]
   python experiments/report.py --report=renders --runs=DIR
   python experiments/report.py --report=masks --runs=DIR [--mask_tau=T]
+  python experiments/report.py --report=evidence --runs=DIR
   python experiments/report.py --report=curve --runs=DIR1,DIR2
       --curve_png=curve.png [--labels=a,b] [--x_axis=seconds|step]
   python experiments/report.py --report=figures --runs=TABLE_ROOT
@@ -18,6 +19,10 @@ renders: the colour of every training view, DIR/renders/train/<stem>.png.
 masks: the alpha of the alive Gaussians with s_j > tau (tau: the run's
   semantic.tau unless --mask_tau) as grey DIR/renders/masks/<stem>.png;
   with ground-truth masks, their IoU goes into metrics.json "mask_iou".
+evidence: on a persistent benchmark, the ground-truth pixel evidence s_j
+  of the Gaussians on billboards (ghosts, by geometry) against the rest,
+  raw and agreement-weighted: DIR/evidence.json and DIR/evidence.png
+  (clipgs_jax/evidence.py).
 curve: test MSE (log) against training time of each run's curve.json (a
   run folder or the curve.json itself).
 figures: per benchmark, a render grid and error curves of the table's
@@ -30,13 +35,15 @@ from absl import flags
 
 from clipgs_jax import cli
 from clipgs_jax import evaluation
+from clipgs_jax import evidence
 from clipgs_jax import figures
 from clipgs_jax import plots
 from clipgs_jax import report
 from clipgs_jax import run as run_lib
 
 _REPORT = flags.DEFINE_enum(
-    "report", None, ["metrics", "renders", "masks", "curve", "figures"],
+    "report", None,
+    ["metrics", "renders", "masks", "evidence", "curve", "figures"],
     "What to make of the runs.")
 _RUNS = flags.DEFINE_list("runs", None, "Run folders written by "
                           "experiments/train.py (figures: the table's root).")
@@ -98,6 +105,32 @@ def _masks() -> None:
         "transient in the mask or the render); updated metrics.json")
 
 
+def _fraction(x) -> str:
+  return "n/a" if x is None else f"{x:.3f}"
+
+
+def _evidence() -> None:
+  out = evidence.evidence_report(_one_run())
+  print(f"{out['num_ghost']:,} of {out['num_alive']:,} alive Gaussians lie "
+        f"on a billboard; over {out['num_views']} training views they carry "
+        f"{_fraction(out['ghost_weight_share'])} of all blending weight and "
+        f"{_fraction(out['ghost_masked_share'])} of the weight on transient "
+        f"pixels, which the render reproduces to "
+        f"{_fraction(out['masked_agreement'])} (mean agreement)")
+  blocks = dict(out["rules"])
+  if out["run_scores"] is not None:
+    blocks["run's own"] = out["run_scores"]
+  for name, b in blocks.items():
+    g, o = b["ghost"], b["other"]
+    print(f"  {name:10s} median s_j ghost {_fraction(g['median'])}, other "
+          f"{_fraction(o['median'])}; s_j > {b['tau']:g}: {g['above_tau']:,} "
+          f"of {g['num']:,} ghosts, {o['above_tau']:,} of {o['num']:,} others"
+          f" (precision {_fraction(b['precision'])}, recall "
+          f"{_fraction(b['recall'])})")
+  print(f"wrote {evidence.EVIDENCE_JSON} and {evidence.EVIDENCE_PNG} in "
+        f"{out['workdir']}")
+
+
 def main(argv):
   cli.no_arguments(argv)
   what = _REPORT.value
@@ -107,6 +140,8 @@ def main(argv):
     print(f"wrote training-view renders to {report.render_colour(_one_run())}")
   elif what == "masks":
     _masks()
+  elif what == "evidence":
+    _evidence()
   elif what == "curve":
     cli.require(_CURVE_PNG.value is not None, "curve_png", None,
                 "is needed: pass the PNG to write")

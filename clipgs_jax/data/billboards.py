@@ -28,6 +28,17 @@ VISIBLE_MARGIN = 0.05
 # Every corner must be at least this fraction of the near depth in front
 # of every camera of the run (no billboard crosses a camera plane).
 MIN_CORNER_DEPTH = 0.05
+# Ghost labels (issue 12's evidence diagnostic; never used in training): a
+# point belongs to a billboard's ghost when it lies within GHOST_DEPTH times
+# the billboard's viewing distance (the mean distance from its cameras to
+# its centre) of its plane, and its foot on the plane falls inside the
+# rectangle grown by GHOST_MARGIN of each side. Vanilla 3DGS fits a
+# billboard from its k views only, so the ghost spreads along their rays.
+# The billboard stands at 0.3-0.9 of the near scene depth (DEPTH_STAGES),
+# so the nearest content behind it is >= 0.11 viewing distances away
+# (0.9 -> 1.0 of the near depth) and most of it much further.
+GHOST_DEPTH = 0.1
+GHOST_MARGIN = 0.05
 
 
 def camera_centre(rotation: np.ndarray, translation: np.ndarray):
@@ -235,3 +246,24 @@ def render(view, corners, rgb, alpha, rotation, translation, intrinsics):
       view[y0:y1, x0:x1])
   full[y0:y1, x0:x1] = patch_alpha
   return out.astype(np.float32), full
+
+
+def on_billboard(points, corners, viewing_distance: float) -> np.ndarray:
+  """bool [N]: the points that belong to the billboard's ghost.
+
+  Args:
+    points: float [N, 3], world positions (e.g. Gaussian means).
+    corners: float [4, 3], the billboard's TL, TR, BR, BL.
+    viewing_distance: float > 0, the mean distance from the cameras of the
+      billboard's run to its centre (GHOST_DEPTH is a fraction of it).
+  """
+  corners = np.asarray(corners, np.float64)
+  e_u, e_v = corners[1] - corners[0], corners[3] - corners[0]
+  normal = np.cross(e_u, e_v)
+  normal /= np.linalg.norm(normal)
+  d = np.asarray(points, np.float64) - corners[0]
+  a = (d @ e_u) / (e_u @ e_u)
+  b = (d @ e_v) / (e_v @ e_v)
+  inside = ((a >= -GHOST_MARGIN) & (a <= 1 + GHOST_MARGIN)
+            & (b >= -GHOST_MARGIN) & (b <= 1 + GHOST_MARGIN))
+  return inside & (np.abs(d @ normal) <= GHOST_DEPTH * viewing_distance)
