@@ -66,6 +66,13 @@ def facing_fraction(centers: np.ndarray, axes: np.ndarray) -> float:
   return float(np.mean(np.sum(axes * to_mid, axis=1) > 0))
 
 
+def _log_stage(stage: str, tic: float) -> float:
+  """Logs the seconds since `tic` as the stage's own time; returns now."""
+  now = time.perf_counter()
+  logging.info("%s: %.0f s", stage, now - tic)
+  return now
+
+
 def reconstruct(image_dir: str, scene_dir: str, camera_model: str,
                 single_camera: bool) -> pycolmap.Reconstruction:
   """Runs SfM; the finished model appears at scene_dir/sparse/0 atomically."""
@@ -81,11 +88,11 @@ def reconstruct(image_dir: str, scene_dir: str, camera_model: str,
   tic = time.perf_counter()
   pycolmap.extract_features(db, image_dir, image_names=names,
                             camera_mode=mode, reader_options=reader)
-  logging.info("features: %.0f s", time.perf_counter() - tic)
+  tic = _log_stage("features", tic)
   verification = pycolmap.TwoViewGeometryOptions()
   verification.ransac.random_seed = SEED
   pycolmap.match_exhaustive(db, verification_options=verification)
-  logging.info("matching: %.0f s", time.perf_counter() - tic)
+  tic = _log_stage("matching", tic)
   tmp = os.path.join(scene_dir, f".tmp-sparse-{os.getpid()}")
   shutil.rmtree(tmp, ignore_errors=True)
   os.makedirs(tmp)
@@ -93,7 +100,7 @@ def reconstruct(image_dir: str, scene_dir: str, camera_model: str,
   options.random_seed = SEED
   options.multiple_models = False
   models = pycolmap.global_mapping(db, image_dir, tmp, options)
-  logging.info("mapping: %.0f s", time.perf_counter() - tic)
+  _log_stage("mapping", tic)
   if not models:
     shutil.rmtree(tmp, ignore_errors=True)
     # The photos, not a bug: a ValueError, reported as one line.
