@@ -75,10 +75,13 @@ def _view_fn(render_cfg: config_lib.RenderConfig):
     proj = project_lib.project(params, alive, cam, near=render_cfg.near,
                                sh_degree=degree)
     out = rasterize.rasterize(proj, cam, bg, render_cfg, evidence_map=mask)
-    agreed = mask * semantic.agreement(out.image, photo)
+    agree = semantic.agreement(out.image, photo)
     reproduced = rasterize.rasterize(proj, cam, bg, render_cfg,
-                                     evidence_map=agreed).evidence
-    return out.contribution, out.evidence, reproduced, out.num_overflow
+                                     evidence_map=mask * agree).evidence
+    pixels = jnp.stack([jnp.sum(agree * mask), jnp.sum(mask),
+                        jnp.sum(agree * (1 - mask)), jnp.sum(1 - mask)])
+    return (out.contribution, out.evidence, reproduced, pixels,
+            out.num_overflow)
   return jax.jit(fn)
 
 
@@ -88,7 +91,9 @@ def pixel_evidence(params, alive, views, cfg: config_lib.Config
 
   Returns:
     float64 [C] arrays: "weight" (sum w), "raw" (sum w m), "reproduced"
-    (sum w m a, a = semantic.agreement of the render with the photo).
+    (sum w m a, a = semantic.agreement of the render with the photo); and
+    float64 [4] "pixels": sum of a and count over transient pixels, the
+    same over the other pixels.
   """
   if views.masks is None:
     raise ValueError("the views have no masks: pixel evidence needs the "
@@ -99,14 +104,15 @@ def pixel_evidence(params, alive, views, cfg: config_lib.Config
   cams = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), views.cameras)
   sums = {k: np.zeros(params.capacity) for k in ("weight", "raw",
                                                  "reproduced")}
+  sums["pixels"] = np.zeros(4)
   dropped = 0
   for i in range(len(views)):
     outs = fn(params, alive, camera_lib.camera_at(cams, i), bg, degree,
               jnp.asarray(views.masks[i], jnp.float32),
               jnp.asarray(views.images[i]))
-    for key, value in zip(sums, outs[:3]):
+    for key, value in zip(sums, outs[:4]):
       sums[key] += np.asarray(value, np.float64)
-    dropped += int(outs[3])
+    dropped += int(outs[4])
   if dropped:
     raise ValueError(f"{dropped} tile-list entries dropped over "
                      f"{len(views)} views: the sums would be inexact; raise "
@@ -139,6 +145,10 @@ def summarize(scores, weight, ghost, alive, tau: float, bins: int) -> dict:
   out["recall"] = (out["ghost"]["above_tau"] / out["ghost"]["num"]
                    if out["ghost"]["num"] else None)
   return out
+
+
+def _mean_or_none(total: float, count: float) -> float | None:
+  return float(total / count) if count > 0 else None
 
 
 def _ratio(num, den):
@@ -193,6 +203,11 @@ def evidence_report(workdir: str, bins: int = 10) -> dict:
                              if masked > 0 else None),
       "masked_agreement": (float(sums["reproduced"][alive].sum()) / masked
                            if masked > 0 else None),
+      # Per pixel, unweighted: the mean agreement on transient pixels
+      # against that on the rest (how well the run fits the scene).
+      "pixel_agreement": {
+          "transient": _mean_or_none(*sums["pixels"][:2]),
+          "static": _mean_or_none(*sums["pixels"][2:])},
       "ghost_rule": {"depth": billboards.GHOST_DEPTH,
                      "margin": billboards.GHOST_MARGIN},
       "min_evidence_weight": semantic.MIN_EVIDENCE_WEIGHT,

@@ -116,7 +116,10 @@ def _evidence() -> None:
         f"{_fraction(out['ghost_weight_share'])} of all blending weight and "
         f"{_fraction(out['ghost_masked_share'])} of the weight on transient "
         f"pixels, which the render reproduces to "
-        f"{_fraction(out['masked_agreement'])} (mean agreement)")
+        f"{_fraction(out['masked_agreement'])} (weighted mean agreement; "
+        f"per pixel {_fraction(out['pixel_agreement']['transient'])} on "
+        f"transient pixels, {_fraction(out['pixel_agreement']['static'])} "
+        "on the rest)")
   blocks = dict(out["rules"])
   if out["run_scores"] is not None:
     blocks["run's own"] = out["run_scores"]

@@ -120,6 +120,8 @@ def test_pixel_evidence_bounds_and_limits(saved_run):  # pylint: disable=redefin
   full = evidence.pixel_evidence(state.params, state.alive, ones, cfg)
   np.testing.assert_allclose(full["raw"], full["weight"], rtol=1e-6,
                              atol=1e-6)
+  h, w = views.masks.shape[1:]
+  assert full["pixels"][1] == len(views) * h * w and full["pixels"][3] == 0
   # Photos equal to the renders: agreement is 1, reproduced equals raw.
   bg = jnp.asarray(cfg.train.background, jnp.float32)
   render = jax.jit(lambda cam: rasterize.render(
@@ -131,6 +133,9 @@ def test_pixel_evidence_bounds_and_limits(saved_run):  # pylint: disable=redefin
   agreed = evidence.pixel_evidence(state.params, state.alive, same, cfg)
   np.testing.assert_allclose(agreed["reproduced"], agreed["raw"],
                              rtol=1e-5, atol=1e-5)
+  np.testing.assert_allclose(agreed["pixels"][[0, 2]],
+                             agreed["pixels"][[1, 3]], rtol=1e-6)
+  assert agreed["pixels"][1] == views.masks.sum()
 
 
 def test_report_writes_json_and_png(saved_run):  # pylint: disable=redefined-outer-name
@@ -143,6 +148,8 @@ def test_report_writes_json_and_png(saved_run):  # pylint: disable=redefined-out
   assert out["num_views"] == len(scene.train)
   assert 0 < out["ghost_weight_share"] < out["ghost_masked_share"] < 1
   assert 0 <= out["masked_agreement"] <= 1
+  for value in out["pixel_agreement"].values():
+    assert 0 <= value <= 1
   assert out["run_scores"] is None      # the smoke config runs no guidance
   for block in out["rules"].values():
     assert len(block["edges"]) == 6 and block["tau"] == 0.5
