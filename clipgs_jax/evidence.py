@@ -35,7 +35,6 @@ from clipgs_jax.data import billboards
 
 EVIDENCE_JSON = "evidence.json"
 EVIDENCE_PNG = "evidence.png"
-RULES = ("raw", "agreement")
 
 
 def ghost_rows(means, manifest: dict, views) -> np.ndarray:
@@ -147,8 +146,8 @@ def summarize(scores, weight, ghost, alive, tau: float, bins: int) -> dict:
   return out
 
 
-def _mean_or_none(total: float, count: float) -> float | None:
-  return float(total / count) if count > 0 else None
+def _share(part: float, whole: float) -> float | None:
+  return float(part / whole) if whole > 0 else None
 
 
 def _ratio(num, den):
@@ -176,8 +175,8 @@ def evidence_report(workdir: str, bins: int = 10) -> dict:
   ghost = ghost_rows(state.params.means, manifest, scene.train) & alive
   sums = pixel_evidence(state.params, state.alive, scene.train, cfg)
   tau = cfg.semantic.tau_p
-  agreed_weight = np.maximum(sums["weight"] - sums["raw"]
-                             + sums["reproduced"], 0.0)
+  agreed_weight = semantic.agreement_weight(
+      sums["weight"], sums["raw"], sums["reproduced"], xnp=np)
   rules = {
       "raw": summarize(_ratio(sums["raw"], sums["weight"]), sums["weight"],
                        ghost, alive, tau, bins),
@@ -188,8 +187,8 @@ def evidence_report(workdir: str, bins: int = 10) -> dict:
   if cfg.semantic.localized and float(jnp.sum(stats.weight)) > 0:
     own = summarize(np.asarray(semantic.normalized_scores(stats)),
                     np.asarray(stats.weight), ghost, alive, tau, bins)
-  total = float(sums["weight"][alive].sum())
-  masked = float(sums["raw"][alive].sum())
+  total = sums["weight"][alive].sum()
+  masked = sums["raw"][alive].sum()
   out = {
       "workdir": os.path.abspath(workdir), "scene": run["scene"],
       "step": int(state.step), "num_views": len(scene.train),
@@ -197,17 +196,14 @@ def evidence_report(workdir: str, bins: int = 10) -> dict:
       # Of all blending weight, of the weight on transient pixels: the
       # ghosts' share; and how well the render reproduces the transient
       # pixels (weight-averaged agreement), i.e. whether they are fitted.
-      "ghost_weight_share": (float(sums["weight"][ghost].sum()) / total
-                             if total > 0 else None),
-      "ghost_masked_share": (float(sums["raw"][ghost].sum()) / masked
-                             if masked > 0 else None),
-      "masked_agreement": (float(sums["reproduced"][alive].sum()) / masked
-                           if masked > 0 else None),
+      "ghost_weight_share": _share(sums["weight"][ghost].sum(), total),
+      "ghost_masked_share": _share(sums["raw"][ghost].sum(), masked),
+      "masked_agreement": _share(sums["reproduced"][alive].sum(), masked),
       # Per pixel, unweighted: the mean agreement on transient pixels
       # against that on the rest (how well the run fits the scene).
       "pixel_agreement": {
-          "transient": _mean_or_none(*sums["pixels"][:2]),
-          "static": _mean_or_none(*sums["pixels"][2:])},
+          "transient": _share(*sums["pixels"][:2]),
+          "static": _share(*sums["pixels"][2:])},
       "ghost_rule": {"depth": billboards.GHOST_DEPTH,
                      "margin": billboards.GHOST_MARGIN},
       "min_evidence_weight": semantic.MIN_EVIDENCE_WEIGHT,

@@ -154,6 +154,22 @@ def agreement(render: jax.Array, photo: jax.Array,
   return jnp.clip(1.0 - err / tolerance, 0.0, 1.0)
 
 
+def agreement_weight(weight, evidence, reproduced, xnp=jnp):
+  """float [C], the weight s_j is a share of under agreement weighting.
+
+  Transient pixels that the render does not reproduce say nothing about
+  the Gaussians drawn there (the photo hides them, or the transient is not
+  fitted yet): their weight, evidence - reproduced, leaves the
+  denominator as `reproduced` replaces `evidence` in the numerator.
+
+  Args:
+    weight, evidence, reproduced: float [C], sum_i w_ij, sum_i w_ij m_i and
+      sum_i w_ij m_i a_i (a = `agreement`), over the same views.
+    xnp: the array module (numpy for host-side float64 sums).
+  """
+  return xnp.maximum(weight - evidence + reproduced, 0.0)
+
+
 def normalized_scores(stats: SemanticStats) -> jax.Array:
   """Eq. 10: s_j = acc_j / weight_j (= n_j for visibility), 0 unseen."""
   seen = stats.weight > 0

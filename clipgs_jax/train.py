@@ -221,12 +221,9 @@ def train_step(state: TrainState, batch: Batch, scorer=None, *,
     due = guidance.scores_due(step, sem)
     evidence, weight = out.evidence, out.contribution
     if sem.agreement:
-      # Transient pixels that the render does not reproduce say nothing
-      # about the Gaussians drawn there (the photo hides them, or the
-      # transient is not fitted yet): they leave numerator and denominator.
       reproduced = _reproduced_evidence(due, proj, cam, bg, cfg,
                                         evidence_map, out.image, target)
-      weight = jnp.maximum(weight - evidence + reproduced, 0.0)
+      weight = semantic_lib.agreement_weight(weight, evidence, reproduced)
       evidence = reproduced
     semantic_stats = semantic_lib.accumulate_pixel(
         state.semantic, evidence, weight, out.visible, due)
