@@ -100,6 +100,30 @@ _TIMED_STEPS = flags.DEFINE_integer("timed_steps", 40, "semantic: timed "
 flags.mark_flag_as_required("bench")
 
 
+def _floats(values) -> list[float] | None:
+  try:
+    return [float(x) for x in values]
+  except ValueError:
+    return None
+
+
+def _radius_ok(values) -> bool:
+  r = _floats(values)
+  return r is not None and len(r) == 2 and 0 < r[0] <= r[1]
+
+
+def _sizes_ok(values) -> bool:
+  return all(len(v.split("x")) == 2 and all(
+      s.isdigit() and int(s) > 0 for s in v.split("x")) for v in values)
+
+
+flags.register_validator(
+    "radius_px", _radius_ok,
+    "--radius_px takes two numbers LO,HI with 0 < LO <= HI, e.g. 2,20")
+flags.register_validator(
+    "sizes", _sizes_ok, "--sizes takes WIDTHxHEIGHT items, e.g. 256x256")
+
+
 def _value(name: str, flag):
   return flag.value if flag.value is not None else DEFAULTS[
       _BENCH.value].get(name)

@@ -77,3 +77,19 @@ def test_helpshort(name):
   # absl's --helpshort prints to stdout and exits with status 1.
   assert proc.returncode in (0, 1) and not proc.stderr, proc.stderr
   assert f"--{_flags(name)[0]}" in proc.stdout
+
+
+@pytest.mark.parametrize("flag, value", [("radius_px", "2"),
+                                         ("radius_px", "20,2"),
+                                         ("sizes", "256")])
+def test_bench_rejects_malformed_list_flags(flag, value):
+  # --radius_px=2 used to fail inside benchmark.frustum_scene with a
+  # TypeError; the flag validators name the flag and the expected form.
+  env = dict(os.environ, PYTHONPATH=str(ROOT), JAX_PLATFORMS="cpu")
+  proc = subprocess.run(
+      [sys.executable, str(ROOT / "experiments" / "bench.py"),
+       "--bench=rasterizer", f"--{flag}={value}"],
+      capture_output=True, text=True, env=env, check=False, timeout=300)
+  assert proc.returncode != 0
+  assert f"--{flag} takes" in proc.stderr, proc.stderr
+  assert "Traceback" not in proc.stderr, proc.stderr
