@@ -3,7 +3,7 @@
 A fixed set of `lanes` walks the tiles: each lane blends one tile's list
 `chunk_size` entries per round and, when that tile's list ends or all its
 pixels saturate, writes the tile out and takes the next tile from a queue
-ordered longest list first. So a round costs lanes x chunk x 256 pixel
+ordered longest list first. So a round costs lanes x chunk x tile pixel
 evaluations however long the longest list is, and the number of rounds
 follows the total work (sum of the lists) divided by the lanes, bounded
 below by the longest list. Per pixel the order of operations is exactly the
@@ -11,8 +11,10 @@ sequential front-to-back blend, so results equal the dense reference.
 
 The blend is a `jax.custom_vjp` whose backward pass walks the lists again
 front to back with the same lane schedule (tiles queued by how many entries
-their pixels blended), recomputing alphas instead of storing them, so memory
-is O(pixels + lanes x chunk) plus O(N) gradient rows.
+their pixels blended), recomputing alphas instead of storing them. A round
+keeps three per-pixel terms of each entry (lanes x chunk x tile pixels) and
+sums them over the pixels once, after its chunk; memory is O(pixels + lanes
+x chunk x tile pixels) plus O(N) gradient rows.
 """
 
 import dataclasses
@@ -228,7 +230,7 @@ def backward(grid, splats, tables, pix, color, depth, trans_final, n_contrib,
 
   Linearised loss L = sum_k w_k v_k + T_final g_T with v_k = c_k.gC + z_k gD
   per pixel. Walking front to back, the part of the first sum behind entry
-  k is v_total minus the running prefix, so nothing is stored per entry.
+  k is v_total minus the running prefix, so no list is stored.
   Columns: mean (2), conic (3), colour (3), opacity, depth.
   """
   gauss, start, _ = tables
@@ -262,38 +264,46 @@ def backward(grid, splats, tables, pix, color, depth, trans_final, n_contrib,
     behind_l = v_total_p[tile] + tail_p[tile]
 
     def entry(b, s):
-      trans, v_prefix, rows = s
-      a, raw, gauss_v, dx, dy, keep = alpha(
+      trans, v_prefix, g_power_b, w_b, g_opac_b = s
+      a, raw, gauss_v, _, _, keep = alpha(
           pix_l, means2d[:, b], conics[:, b], opacities[:, b])
       include = chunk[:, None] * chunk_size + b < n_l             # [L, P]
       a = jnp.where(include, a, 0.0)
       w = a * trans
-      v = (jnp.einsum("lc,lpc->lp", colors[:, b], gc_l)
-           + depths[:, b, None] * gd_l)
+      color_b = colors[:, b, None, :]
+      v = (color_b[..., 0] * gc_l[..., 0] + color_b[..., 1] * gc_l[..., 1]
+           + color_b[..., 2] * gc_l[..., 2] + depths[:, b, None] * gd_l)
       v_prefix = v_prefix + w * v
       behind = behind_l - v_prefix
       g_alpha = jnp.where(include, trans * v - behind / (1.0 - a), 0.0)
       # alpha = min(0.99, o G), G = exp(-power): the cap has zero slope.
       g_raw = jnp.where(keep & (raw < MAX_ALPHA) & include, g_alpha, 0.0)
-      g_power = -g_raw * raw
-      # power = a dx^2 / 2 + b dx dy + c dy^2 / 2 with dx = px - mean_x, so
-      # every splat gradient is a conic-weighted moment of g_power over the
-      # tile's pixels.
-      gx, gy = jnp.sum(g_power * dx, 1), jnp.sum(g_power * dy, 1)
-      ca, cb, cc = (conics[:, b, i] for i in range(3))
-      row = jnp.concatenate([
-          jnp.stack([-(ca * gx + cb * gy), -(cb * gx + cc * gy),
-                     0.5 * jnp.sum(g_power * dx * dx, 1),
-                     jnp.sum(g_power * dx * dy, 1),
-                     0.5 * jnp.sum(g_power * dy * dy, 1)], -1),
-          jnp.einsum("lp,lpc->lc", w, gc_l),
-          jnp.stack([jnp.sum(g_raw * gauss_v, 1), jnp.sum(w * gd_l, 1)],
-                    -1)], -1)                                    # [L, 10]
-      return trans * (1.0 - a), v_prefix, rows.at[:, b].set(row)
+      # Per-pixel terms only: the sums over the tile's pixels run once per
+      # chunk below. Summed here, each entry was ~10 small reduce and dot
+      # kernels of its own (BUILD_NOTES, session 24).
+      return (trans * (1.0 - a), v_prefix,
+              g_power_b.at[:, b].set(-g_raw * raw), w_b.at[:, b].set(w),
+              g_opac_b.at[:, b].set(g_raw * gauss_v))
 
-    rows = jnp.zeros(in_list.shape + (_GRAD_COLUMNS,), dtype)
-    trans, v_prefix, rows = jax.lax.fori_loop(
-        0, chunk_size, entry, (trans, v_prefix, rows))
+    per_pixel = jnp.zeros(in_list.shape + (p,), dtype)            # [L, B, P]
+    trans, v_prefix, g_power, w, g_opac = jax.lax.fori_loop(
+        0, chunk_size, entry, (trans, v_prefix, per_pixel, per_pixel,
+                               per_pixel))
+    # power = a dx^2 / 2 + b dx dy + c dy^2 / 2 with dx = px - mean_x, so
+    # every splat gradient is a conic-weighted moment of g_power over the
+    # tile's pixels.
+    dx = pix_l[:, None, :, 0] - means2d[:, :, None, 0]            # [L, B, P]
+    dy = pix_l[:, None, :, 1] - means2d[:, :, None, 1]
+    gx, gy = jnp.sum(g_power * dx, -1), jnp.sum(g_power * dy, -1)
+    ca, cb, cc = conics[..., 0], conics[..., 1], conics[..., 2]
+    rows = jnp.stack([
+        -(ca * gx + cb * gy), -(cb * gx + cc * gy),
+        0.5 * jnp.sum(g_power * dx * dx, -1), jnp.sum(g_power * dx * dy, -1),
+        0.5 * jnp.sum(g_power * dy * dy, -1),
+        jnp.sum(w * gc_l[:, None, :, 0], -1),
+        jnp.sum(w * gc_l[:, None, :, 1], -1),
+        jnp.sum(w * gc_l[:, None, :, 2], -1),
+        jnp.sum(g_opac, -1), jnp.sum(w * gd_l[:, None], -1)], -1)  # [L, B, 10]
     rows = jnp.where(in_list[..., None], rows, 0.0)
     grads = grads.at[gid.reshape(-1)].add(rows.reshape(-1, _GRAD_COLUMNS))
     chunk = chunk + 1
