@@ -57,10 +57,14 @@ class EvidenceForwardTest(parameterized.TestCase):
         params, alive)
     self.assertIsNone(plain.evidence)
     # Two programs, compiled apart: XLA may fuse (and round) the shared
-    # arithmetic differently, so equal up to float32 rounding.
-    for field in ("image", "alpha", "depth", "contribution"):
+    # arithmetic differently, so equal up to float32 rounding. Depth is a
+    # ratio sum(w z) / alpha, whose rounding grows where alpha is small: it
+    # gets the tolerance it has against the reference (found at 1.0e-5
+    # relative on 11 pixels once the blend loops were unrolled, session 24).
+    for field in ("image", "alpha", "contribution"):
       np.testing.assert_allclose(getattr(out, field), getattr(plain, field),
                                  rtol=1e-6, atol=1e-6, err_msg=field)
+    np.testing.assert_allclose(out.depth, plain.depth, rtol=1e-5, atol=1e-4)
 
   def test_constant_maps(self):
     cam = synthetic.front_camera(37, 29)

@@ -17,14 +17,16 @@ FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest")
 
 class LaneTest(parameterized.TestCase):
 
+  # An odd chunk leaves a remainder after the blend's two-entry unroll.
   @parameterized.named_parameters(
-      ("one_lane", 1, 16), ("three_lanes", 3, 16), ("all_tiles", 64, 16),
-      ("tile8_auto", 0, 8))
-  def test_matches_reference_with_gradients(self, lanes, tile):
+      ("one_lane", 1, 16, 8), ("three_lanes", 3, 16, 8),
+      ("all_tiles", 64, 16, 8), ("tile8_auto", 0, 8, 8),
+      ("odd_chunk", 3, 16, 5))
+  def test_matches_reference_with_gradients(self, lanes, tile, chunk):
     cam = synthetic.front_camera(37, 29)
     params = synthetic.random_params(80, seed=2, degree=1)
     alive = jnp.ones(80, bool)
-    cfg = config.RenderConfig(tile_budget=256, chunk_size=8, lanes=lanes,
+    cfg = config.RenderConfig(tile_budget=256, chunk_size=chunk, lanes=lanes,
                               tile_size=tile)
     emap = jnp.asarray(np.random.default_rng(0).uniform(size=(29, 37)),
                        jnp.float32)
