@@ -84,7 +84,7 @@ def alpha(pix, mean, conic, opacity):
   Args:
     pix: float [L, P, 2]; mean: [L, 2]; conic: [L, 3]; opacity: [L].
   Returns:
-    alpha, raw = opacity * gauss, gauss = exp(-power), dx, dy, keep: [L, P].
+    alpha, raw = opacity * gauss, gauss = exp(-power), keep: [L, P].
   """
   dx = pix[..., 0] - mean[:, None, 0]
   dy = pix[..., 1] - mean[:, None, 1]
@@ -94,7 +94,7 @@ def alpha(pix, mean, conic, opacity):
   raw = opacity[:, None] * gauss
   keep = (power >= 0) & (raw >= project_lib.ALPHA_THRESHOLD)
   a = jnp.where(keep, jnp.minimum(raw, MAX_ALPHA), 0.0)
-  return a, raw, gauss, dx, dy, keep
+  return a, raw, gauss, keep
 
 
 def _pad_row(x, value):
@@ -267,7 +267,7 @@ def backward(grid, splats, tables, pix, color, depth, trans_final, n_contrib,
 
     def entry(b, s):
       trans, v_prefix, g_power_b, w_b, g_opac_b = s
-      a, raw, gauss_v, _, _, keep = alpha(
+      a, raw, gauss_v, keep = alpha(
           pix_l, means2d[:, b], conics[:, b], opacities[:, b])
       include = chunk[:, None] * chunk_size + b < n_l             # [L, P]
       a = jnp.where(include, a, 0.0)
