@@ -18,8 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from clipgs_jax import config as config_lib
-from clipgs_jax import densify
 from clipgs_jax import fileio
+from clipgs_jax import state as state_lib
 
 # 2: SemanticStats gained `weight` (contribution-weighted s_j normaliser).
 VERSION = 2
@@ -53,9 +53,9 @@ def flatten(tree) -> dict[str, Any]:
   return {"/".join(_key_name(e) for e in path): leaf for path, leaf in leaves}
 
 
-def save(path: str, state, cfg: config_lib.Config,
+def save(path: str, state: state_lib.TrainState, cfg: config_lib.Config,
          extra: dict | None = None) -> None:
-  """Writes `state` (a TrainState), the config and `extra` to `path`."""
+  """Writes `state`, the config and `extra` to `path`."""
   arrays = {}
   for name, leaf in flatten(jax.device_get(state)).items():
     if _is_prng_key(leaf):
@@ -145,11 +145,12 @@ def check_resumable(path: str, cfg: config_lib.Config) -> None:
         "to start over.")
 
 
-def restore(path: str, template) -> tuple[Any, dict[str, Any]]:
-  """Loads a checkpoint into the structure of `template` (a TrainState).
+def restore(path: str, template: state_lib.TrainState
+            ) -> tuple[state_lib.TrainState, dict[str, Any]]:
+  """Loads a checkpoint into the structure of `template`.
 
   The template gives the pytree structure; a template of another capacity
-  is resized first (densify.resize), since capacity grows during training.
+  is resized first (state.resize), since capacity grows during training.
   Every leaf must be present with the template's dtype and shape.
 
   Returns:
@@ -167,7 +168,7 @@ def _restore(data, path, template):
                           "start over in a new workdir.")
   capacity = data[_PREFIX + "alive"].shape[0]
   if template.alive.shape[0] != capacity:
-    template = densify.resize(template, capacity)
+    template = state_lib.resize(template, capacity)
   names = flatten(template)
   missing = [n for n in names if _PREFIX + n not in data]
   if missing:

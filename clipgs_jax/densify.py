@@ -1,21 +1,14 @@
-"""Per-row statistics and adaptive density control at a fixed capacity.
+"""Adaptive density control at a fixed capacity (3DGS).
 
-Every operation that changes which Gaussian a row holds (clone, split,
-prune, capacity growth) goes through `apply_rows`, which edits the
-parameters, the alive mask, Adam's mu/nu and every per-row statistic
-(densification and semantic) together, so they cannot drift apart. Rows
-that receive a new Gaussian start with zero moments and zero statistics.
-
-`state` below is a `train.TrainState` (fields params, alive, opt_state,
-densify, semantic, step); this module does not import train.py. Row
-operations map over `state.semantic` (a `semantic.SemanticStats`) as a
-pytree, so this module needs no semantic import either.
+The densification statistics (`state.DensifyStats`) are accumulated by the
+train step (`accumulate`) and read here every `every` steps: rows with a
+large positional gradient are cloned or split into free slots, faint or
+oversized rows are pruned. Every row edit goes through `state.write_rows`,
+so parameters, Adam moments and per-row statistics move together.
 """
 
 import functools
-from typing import Any, Callable
 
-import flax.struct
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -24,6 +17,7 @@ from clipgs_jax import config as config_lib
 from clipgs_jax import gaussians
 from clipgs_jax import optim
 from clipgs_jax import project as project_lib
+from clipgs_jax import state as state_lib
 from clipgs_jax import tree_util
 
 # Radius of a splat = this many standard deviations along its major axis
@@ -32,86 +26,6 @@ RADIUS_SIGMAS = 3.0
 # Floor of the eigenvalue discriminant, as in the 3DGS radius: keeps the
 # square root away from negative rounding error for near-isotropic splats.
 _DISCRIMINANT_FLOOR = 0.1
-
-
-@flax.struct.dataclass
-class DensifyStats:
-  """What densification decides on, accumulated since the last densify.
-
-  Attributes:
-    grad_accum: float [C], sum over views of |d loss / d NDC xy|.
-    denom: float [C], number of views whose image the splat overlapped.
-    max_radius: float [C], largest screen radius (pixels) seen.
-  """
-  grad_accum: Any
-  denom: Any
-  max_radius: Any
-
-  @classmethod
-  def zeros(cls, capacity: int) -> "DensifyStats":
-    # Separate buffers: one shared array could not be donated three times.
-    z = lambda: jnp.zeros((capacity,), jnp.float32)
-    return cls(grad_accum=z(), denom=z(), max_radius=z())
-
-
-def apply_rows(state, *, params_fn: Callable, alive_fn: Callable,
-               fresh_fn: Callable):
-  """The one helper every row operation goes through.
-
-  Args:
-    state: a TrainState.
-    params_fn: GaussianParams -> GaussianParams.
-    alive_fn: bool [C] -> bool [C'].
-    fresh_fn: applied to every Adam moment and every per-row statistic
-      (densify and semantic); it must give the touched rows zeros.
-  """
-  capacity = state.alive.shape[0]
-  return state.replace(
-      params=params_fn(state.params),
-      alive=alive_fn(state.alive),
-      opt_state=optim.map_rows(state.opt_state, capacity, fresh_fn),
-      densify=jax.tree.map(fresh_fn, state.densify),
-      semantic=jax.tree.map(fresh_fn, state.semantic))
-
-
-def write_rows(state, idx: jax.Array, values: gaussians.GaussianParams | None,
-               alive: bool | jax.Array):
-  """Rows idx get `values` (None: keep) and `alive`; moments/stats become 0.
-
-  Out-of-range indices (the fill value C of a sized nonzero) write nothing.
-  """
-  params_fn = ((lambda p: p) if values is None
-               else lambda p: tree_util.tree_index_set(p, idx, values))
-  return apply_rows(
-      state, params_fn=params_fn,
-      alive_fn=lambda a: a.at[idx].set(alive, mode="drop"),
-      fresh_fn=lambda x: x.at[idx].set(0, mode="drop"))
-
-
-def resize(state, capacity: int):
-  """Host-side: the same state with `capacity` slots (new slots dead, zero).
-
-  Growing C changes every array shape, so the jitted train step and
-  densify recompile once afterwards. Shrinking is refused when it would cut
-  off alive rows.
-  """
-  old = state.alive.shape[0]
-  if capacity < old and bool(jnp.any(state.alive[capacity:])):
-    raise ValueError(f"densify.resize: cannot shrink capacity {old} to "
-                     f"{capacity}: alive rows would be lost; compact first.")
-  def fit(x, fill=0):
-    if capacity <= old:
-      return x[:capacity]
-    pad = jnp.full((capacity - old,) + x.shape[1:], fill, x.dtype)
-    return jnp.concatenate([x, pad])
-  empty, _ = gaussians.empty(max(capacity - old, 0), state.params.sh_degree)
-  def params_fn(p):
-    if capacity <= old:
-      return jax.tree.map(lambda x: x[:capacity], p)
-    return jax.tree.map(lambda x, e: jnp.concatenate([x, e.astype(x.dtype)]),
-                        p, empty)
-  return apply_rows(state, params_fn=params_fn,
-                    alive_fn=lambda a: fit(a, False), fresh_fn=fit)
 
 
 def screen_radius(proj: project_lib.Projected) -> jax.Array:
@@ -136,9 +50,9 @@ def on_screen(proj: project_lib.Projected, width: int, height: int
           & (lo[:, 1] < height))
 
 
-def accumulate(stats: DensifyStats, grad_means2d: jax.Array,
+def accumulate(stats: state_lib.DensifyStats, grad_means2d: jax.Array,
                seen: jax.Array, radius: jax.Array, width: int, height: int
-               ) -> DensifyStats:
+               ) -> state_lib.DensifyStats:
   """Adds one view's positional gradients to the statistics.
 
   Args:
@@ -152,14 +66,14 @@ def accumulate(stats: DensifyStats, grad_means2d: jax.Array,
   """
   scale = jnp.array([0.5 * width, 0.5 * height], grad_means2d.dtype)
   norm = jnp.linalg.norm(grad_means2d * scale, axis=-1)
-  return DensifyStats(
+  return state_lib.DensifyStats(
       grad_accum=stats.grad_accum + jnp.where(seen, norm, 0.0),
       denom=stats.denom + seen.astype(jnp.float32),
       max_radius=jnp.where(seen, jnp.maximum(stats.max_radius, radius),
                            stats.max_radius))
 
 
-def _wanted(state, cfg: config_lib.Config):
+def _wanted(state: state_lib.TrainState, cfg: config_lib.Config):
   """bool [C] rows asking for a clone or split, and their mean gradient."""
   stats = state.densify
   mean_grad = stats.grad_accum / jnp.maximum(stats.denom, 1.0)
@@ -168,7 +82,7 @@ def _wanted(state, cfg: config_lib.Config):
   return want, mean_grad
 
 
-def count_requests(state, *, cfg: config_lib.Config
+def count_requests(state: state_lib.TrainState, *, cfg: config_lib.Config
                    ) -> tuple[jax.Array, jax.Array]:
   """(int32 [] clones + splits the next densify asks for, int32 [] free slots)."""
   want, _ = _wanted(state, cfg)
@@ -176,7 +90,8 @@ def count_requests(state, *, cfg: config_lib.Config
           jnp.sum(~state.alive, dtype=jnp.int32))
 
 
-def densify(state, key: jax.Array, *, cfg: config_lib.Config):
+def densify(state: state_lib.TrainState, key: jax.Array, *,
+            cfg: config_lib.Config):
   """One adaptive density control step: clone, split, prune, reset stats.
 
   Rows whose mean NDC positional gradient reaches the threshold are cloned
@@ -225,9 +140,9 @@ def densify(state, key: jax.Array, *, cfg: config_lib.Config):
   child_free = params.replace(means=params.means + offsets[1],
                               log_scales=child_log_scales)
   to_free_slot = tree_util.tree_select(split, child_free, params)
-  state = write_rows(state, dst, to_free_slot, alive=True)
-  state = write_rows(state, jnp.where(split, rows, capacity), child_in_place,
-                     alive=True)
+  state = state_lib.write_rows(state, dst, to_free_slot, alive=True)
+  state = state_lib.write_rows(state, jnp.where(split, rows, capacity),
+                               child_in_place, alive=True)
 
   act = gaussians.activate(state.params)
   after_reset = (d.opacity_reset_every > 0) & (
@@ -236,9 +151,9 @@ def densify(state, key: jax.Array, *, cfg: config_lib.Config):
              | (state.densify.max_radius > d.max_screen_size))
   prune = state.alive & ((act.opacities < d.min_opacity)
                          | (after_reset & too_big))
-  state = write_rows(state, jnp.where(prune, rows, capacity), None,
-                     alive=False)
-  state = state.replace(densify=DensifyStats.zeros(capacity))
+  state = state_lib.write_rows(state, jnp.where(prune, rows, capacity),
+                               None, alive=False)
+  state = state.replace(densify=state_lib.DensifyStats.zeros(capacity))
   info = {
       "num_cloned": jnp.sum(clone, dtype=jnp.int32),
       "num_split": jnp.sum(split, dtype=jnp.int32),
@@ -248,7 +163,8 @@ def densify(state, key: jax.Array, *, cfg: config_lib.Config):
   return state, info
 
 
-def reset_opacity(state, *, cfg: config_lib.Config):
+def reset_opacity(state: state_lib.TrainState, *, cfg: config_lib.Config
+                  ) -> state_lib.TrainState:
   """Opacity -> min(opacity, opacity_reset_to) and zero opacity moments."""
   target = cfg.densify.opacity_reset_to
   logit = float(np.log(target / (1.0 - target)))

@@ -2,7 +2,7 @@
 
 The equations are the pure functions of `semantic.py`; this module decides
 when they run (SemanticConfig's schedule), what scores a view (a scorer),
-and applies the prune through `densify.write_rows`, so parameters, Adam
+and applies the prune through `state.write_rows`, so parameters, Adam
 moments and every per-row statistic move together.
 
 A scorer is a pytree with a method `score(image, view) -> {"s_hat_d",
@@ -39,6 +39,7 @@ import numpy as np
 from clipgs_jax import config as config_lib
 from clipgs_jax import densify
 from clipgs_jax import semantic
+from clipgs_jax import state as state_lib
 
 # Keys of the per-step scores in the train step's metrics: image evidence
 # logs the view's scores, pixel evidence the mean of the view's map. Beside
@@ -249,7 +250,7 @@ def scores_due(step: jax.Array, sem: config_lib.SemanticConfig) -> jax.Array:
   return (since >= 0) & (since % sem.score_every == 0)
 
 
-def opacity_regularizer(stats: semantic.SemanticStats,
+def opacity_regularizer(stats: state_lib.SemanticStats,
                         opacity_logits: jax.Array, alive: jax.Array,
                         step: jax.Array, cfg: config_lib.Config
                         ) -> jax.Array:
@@ -261,12 +262,12 @@ def opacity_regularizer(stats: semantic.SemanticStats,
   return jnp.where((step >= sem.reg_start) & ~quiet, loss, 0.0)
 
 
-def score_and_accumulate(stats: semantic.SemanticStats, image: jax.Array,
+def score_and_accumulate(stats: state_lib.SemanticStats, image: jax.Array,
                          visible: jax.Array, weight: jax.Array | None,
                          view: jax.Array,
                          step: jax.Array, scorer,
                          sem: config_lib.SemanticConfig
-                         ) -> tuple[semantic.SemanticStats,
+                         ) -> tuple[state_lib.SemanticStats,
                                     dict[str, jax.Array]]:
   """Scores the rendered view when due and accumulates (eqs. 5-9).
 
@@ -315,7 +316,8 @@ def prune_due(step: int, cfg: config_lib.Config) -> bool:
           and since >= 0 and since % sem.prune_every == 0 and not quiet)
 
 
-def prune(state, *, cfg: config_lib.Config):
+def prune(state: state_lib.TrainState, *, cfg: config_lib.Config
+          ) -> tuple[state_lib.TrainState, dict[str, jax.Array]]:
   """Eq. 13: removes alive rows with s_j > tau, or n_j < n_min and
   alpha_j < alpha_min; their parameters, moments and statistics are cleared.
 
@@ -359,7 +361,7 @@ def prune(state, *, cfg: config_lib.Config):
       "histogram": histogram,
       "pruned_semantic": by_score,
   }
-  state = densify.write_rows(
+  state = state_lib.write_rows(
       state, jnp.where(by_score | by_visibility, rows, capacity), None,
       alive=False)
   return state, info
@@ -381,7 +383,7 @@ def histogram_edges(sem: config_lib.SemanticConfig) -> list[float]:
 
 
 def summarize(prune_events: list[dict], num_alive: int,
-              stats: semantic.SemanticStats) -> dict[str, Any]:
+              stats: state_lib.SemanticStats) -> dict[str, Any]:
   """The metrics.json fields of a run's semantic stage.
 
   fraction_pruned = Gaussians removed by eq. 13, both conditions (s_j > tau

@@ -25,6 +25,7 @@ from clipgs_jax import config as config_lib
 from clipgs_jax import densify as densify_lib
 from clipgs_jax import evaluation
 from clipgs_jax import guidance
+from clipgs_jax import state as state_lib
 
 _log = logging.getLogger(__name__)
 
@@ -85,7 +86,9 @@ class Context:
     return guidance.per_step_keys(self.cfg.semantic)
 
 
-def restore(state, ckpt_path: str, cfg: config_lib.Config, resume: bool):
+def restore(state: state_lib.TrainState, ckpt_path: str,
+            cfg: config_lib.Config, resume: bool
+            ) -> tuple[state_lib.TrainState, FitLog]:
   """(state, FitLog): from the checkpoint when resuming and one exists,
   else the step-0 `state` and an empty log."""
   flog = FitLog()
@@ -125,7 +128,7 @@ def start_clock(flog: FitLog) -> FitLog:
   return dataclasses.replace(flog, tic=time.perf_counter())
 
 
-def stop_clock(state, flog: FitLog) -> FitLog:
+def stop_clock(state: state_lib.TrainState, flog: FitLog) -> FitLog:
   """Waits for the device and adds the time since the clock started."""
   jax.block_until_ready(state)
   elapsed = time.perf_counter() - flog.tic
@@ -144,7 +147,8 @@ def record_step(flog: FitLog, step: int, metrics: dict[str, jax.Array],
   return dataclasses.replace(flog, pending=pending, last_metrics=metrics)
 
 
-def eval_point(state, flog: FitLog, step: int, ctx: Context) -> FitLog:
+def eval_point(state: state_lib.TrainState, flog: FitLog, step: int,
+               ctx: Context) -> FitLog:
   """Test PSNR of the current model, appended to the curve."""
   result = evaluation.evaluate(state.params, state.alive, ctx.scene.test,
                                ctx.cfg, psnr_only=True)
@@ -156,7 +160,8 @@ def eval_point(state, flog: FitLog, step: int, ctx: Context) -> FitLog:
       "test_psnr": result["mean/psnr"]}])
 
 
-def evaluate(state, flog: FitLog, step: int, ctx: Context) -> FitLog:
+def evaluate(state: state_lib.TrainState, flog: FitLog, step: int,
+             ctx: Context) -> FitLog:
   """eval_point with the clock stopped (evaluation is not training time)."""
   flog = eval_point(state, stop_clock(state, flog), step, ctx)
   return start_clock(flog)
@@ -189,11 +194,12 @@ def flush_scores(flog: FitLog, ctx: Context) -> FitLog:
   return dataclasses.replace(flog, scores=flog.scores + rows, pending=[])
 
 
-def semantic_prune(state, flog: FitLog, step: int, ctx: Context):
+def semantic_prune(state: state_lib.TrainState, flog: FitLog, step: int,
+                   ctx: Context) -> tuple[state_lib.TrainState, FitLog]:
   """Eq. 13 through the guard; keeps the removed rows for the mask IoU.
 
   The prune clears alive and the rows' moments and statistics but leaves
-  their parameters (densify.write_rows with values None), so the rows are
+  their parameters (state.write_rows with values None), so the rows are
   gathered after it, on the device, and only they are fetched.
   """
   cfg = ctx.cfg
@@ -220,7 +226,8 @@ def semantic_prune(state, flog: FitLog, step: int, ctx: Context):
       prune_events=flog.prune_events + [event])
 
 
-def grow_if_needed(state, cfg: config_lib.Config):
+def grow_if_needed(state: state_lib.TrainState, cfg: config_lib.Config
+                   ) -> state_lib.TrainState:
   """Doubles C (up to max_capacity) when the next densify asks for more
   clones/splits than there are free slots."""
   requested, free = (int(x) for x in jax.device_get(
@@ -235,10 +242,11 @@ def grow_if_needed(state, cfg: config_lib.Config):
   _log.info("step %d: capacity %d -> %d (%d requests, %d free); the train "
             "step recompiles once", int(state.step), capacity, new,
             requested, free)
-  return densify_lib.resize(state, new)
+  return state_lib.resize(state, new)
 
 
-def densify(state, flog: FitLog, step: int, ctx: Context):
+def densify(state: state_lib.TrainState, flog: FitLog, step: int,
+            ctx: Context) -> tuple[state_lib.TrainState, FitLog]:
   """The densify (after growing C if needed) and opacity reset `step` is
   due for (densify.due); the densify's counts go to the next log."""
   do_densify, do_reset = densify_lib.due(step, ctx.cfg)
@@ -290,7 +298,8 @@ def log(flog: FitLog, step: int, ctx: Context) -> FitLog:
   return dataclasses.replace(flog, log=flog.log + [values])
 
 
-def save(state, flog: FitLog, ctx: Context) -> FitLog:
+def save(state: state_lib.TrainState, flog: FitLog, ctx: Context
+         ) -> FitLog:
   """Writes the checkpoint with the run's record (scores fetched first)."""
   flog = flush_scores(flog, ctx)
   checkpoint.save(ctx.ckpt_path, state, ctx.cfg, extra={
@@ -299,7 +308,8 @@ def save(state, flog: FitLog, ctx: Context) -> FitLog:
   return flog
 
 
-def save_checkpoint(state, flog: FitLog, ctx: Context) -> FitLog:
+def save_checkpoint(state: state_lib.TrainState, flog: FitLog,
+                    ctx: Context) -> FitLog:
   """`save` with the clock stopped."""
   return start_clock(save(state, stop_clock(state, flog), ctx))
 
@@ -309,7 +319,7 @@ class FitResult:
   """What `train.fit` returns.
 
   Attributes:
-    state: the final train.TrainState.
+    state: the final state.
     cfg: the resolved config the run used.
     curve: list of {step, seconds, test_psnr}.
     train_seconds: wall time of the training loop, compilation included,
@@ -326,7 +336,7 @@ class FitResult:
       semantic rule removed, as they were when removed (None if none were;
       rows removed before a resume are not kept).
   """
-  state: Any
+  state: state_lib.TrainState
   cfg: config_lib.Config
   curve: list[dict[str, float]]
   train_seconds: float
@@ -336,7 +346,8 @@ class FitResult:
   pruned: Any = None
 
 
-def result(state, cfg: config_lib.Config, flog: FitLog) -> FitResult:
+def result(state: state_lib.TrainState, cfg: config_lib.Config,
+           flog: FitLog) -> FitResult:
   """The FitResult of a finished loop; the pruned rows concatenated."""
   pruned = (jax.tree.map(lambda *x: np.concatenate(x), *flog.pruned)
             if flog.pruned else None)

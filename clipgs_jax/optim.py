@@ -1,4 +1,4 @@
-"""Per-field Adam (optax.partition) and helpers on its per-row moments."""
+"""Per-field Adam (optax.partition) and helpers on its per-field moments."""
 
 from typing import Callable
 
@@ -9,6 +9,7 @@ import optax
 
 from clipgs_jax import config as config_lib
 from clipgs_jax import gaussians
+from clipgs_jax import state as state_lib
 
 FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh_dc",
           "sh_rest")
@@ -61,28 +62,13 @@ def make(cfg: config_lib.OptimConfig, extent: float, total_steps: int
   return optax.partition(transforms, _labels())
 
 
-def is_row_leaf(x, capacity: int) -> bool:
-  """True for arrays with one row per Gaussian slot (leading axis C).
-
-  In the optimizer state these are exactly Adam's mu and nu; the step
-  counts are scalars.
-  """
-  return np.ndim(x) >= 1 and np.shape(x)[0] == capacity
-
-
-def map_rows(opt_state, capacity: int, fn: Callable) -> optax.OptState:
-  """Applies fn to every per-row leaf (Adam moments) of an optimizer state."""
-  return jax.tree.map(
-      lambda x: fn(x) if is_row_leaf(x, capacity) else x, opt_state)
-
-
 def zero_field(opt_state, field: str, capacity: int) -> optax.OptState:
   """Zeroes the Adam moments of one GaussianParams field for every row."""
   if field not in FIELDS:
     raise ValueError(f"optim.zero_field: unknown field {field!r}; one of "
                      f"{FIELDS}.")
   inner = dict(opt_state.inner_states)
-  inner[field] = map_rows(inner[field], capacity, jnp.zeros_like)
+  inner[field] = state_lib.map_rows(inner[field], capacity, jnp.zeros_like)
   return opt_state._replace(inner_states=inner)
 
 

@@ -1,19 +1,18 @@
-"""CLIP-GS semantic guidance as pure functions (DESIGN.md, paper eqs. 5-13).
+"""The CLIP-GS semantic stage as pure functions (the paper's eqs. 5-13).
 
 Per training step: score the rendered view (eqs. 5-7), accumulate the score
 into the Gaussians that contributed to it (eqs. 8-9), normalise by view count
 (eq. 10), penalise opacity by the normalised score (eqs. 11-12) and prune
-(eq. 13). The per-row statistics are `SemanticStats`, a field of the train
-state, so densification and pruning (densify.apply_rows) move them with the
-parameters.
+(eq. 13). The per-row statistics are `state.SemanticStats`, a field of the
+train state, so densification and pruning (state.apply_rows) move them with
+the parameters.
 """
 
-from typing import Any
-
-import flax.struct
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from clipgs_jax import state as state_lib
 
 # s_hat = (cos + 1) / 2 maps cosine similarity to [0, 1]; 0.5 (cos = 0) is
 # the neutral point below which a view adds no distractor evidence.
@@ -33,27 +32,6 @@ MIN_EVIDENCE_WEIGHT = 1.0
 # (train l1 0.03-0.05) and well below the contrast of a pasted object
 # against what it hides.
 AGREEMENT_TOLERANCE = 0.1
-
-
-@flax.struct.dataclass
-class SemanticStats:
-  """CLIP-GS per-Gaussian distractor statistics (DESIGN.md steps 4-5).
-
-  Attributes:
-    acc: float [C], accumulated weight * beta * max(0, s_hat_d - 0.5).
-    weight: float [C], accumulated weight; s_j = acc / weight. Equal to n
-      under the paper's visibility weighting.
-    n: float [C], number of scored views in which the Gaussian contributed
-      (the n_j of the eq. 13 visibility rule, whatever the weighting).
-  """
-  acc: Any
-  weight: Any
-  n: Any
-
-  @classmethod
-  def zeros(cls, capacity: int) -> "SemanticStats":
-    z = lambda: jnp.zeros((capacity,), jnp.float32)
-    return cls(acc=z(), weight=z(), n=z())
 
 
 def normalized_max_cosine(image_embedding: jax.Array,
@@ -81,10 +59,10 @@ def _check_score(score) -> None:
     raise ValueError(f"s_hat_d must be a finite score in [0, 1], got {value}.")
 
 
-def accumulate(stats: SemanticStats, visible: jax.Array,
+def accumulate(stats: state_lib.SemanticStats, visible: jax.Array,
                s_hat_d: jax.Array, beta: float,
                weight: jax.Array | None = None,
-               scored: jax.Array | bool = True) -> SemanticStats:
+               scored: jax.Array | bool = True) -> state_lib.SemanticStats:
   """Eqs. 8-9: acc += w * beta * max(0, s_hat_d - 0.5), weight += w, n += v.
 
   With the paper's weight w = v_j (visibility, the default), every visible
@@ -118,9 +96,9 @@ def accumulate(stats: SemanticStats, visible: jax.Array,
                        n=stats.n + v)
 
 
-def accumulate_pixel(stats: SemanticStats, evidence: jax.Array,
+def accumulate_pixel(stats: state_lib.SemanticStats, evidence: jax.Array,
                      contribution: jax.Array, visible: jax.Array,
-                     due: jax.Array) -> SemanticStats:
+                     due: jax.Array) -> state_lib.SemanticStats:
   """Localized evidence: acc += sum_i w_ij m_i, weight += sum_i w_ij.
 
   s_j = acc_j / weight_j is then the share of Gaussian j's blending weight,
@@ -170,14 +148,14 @@ def agreement_weight(weight, evidence, reproduced, xnp=jnp):
   return xnp.maximum(weight - evidence + reproduced, 0.0)
 
 
-def normalized_scores(stats: SemanticStats) -> jax.Array:
+def normalized_scores(stats: state_lib.SemanticStats) -> jax.Array:
   """Eq. 10: s_j = acc_j / weight_j (= n_j for visibility), 0 unseen."""
   seen = stats.weight > 0
   return jnp.where(seen, stats.acc / jnp.where(seen, stats.weight, 1.0),
                    0.0)
 
 
-def opacity_loss(stats: SemanticStats, opacity_logits: jax.Array,
+def opacity_loss(stats: state_lib.SemanticStats, opacity_logits: jax.Array,
                  alive: jax.Array, weight: float) -> jax.Array:
   """Eqs. 11-12: lambda_c * mean over alive j of stop_grad(s_j) * alpha_j."""
   s = jax.lax.stop_gradient(normalized_scores(stats))
@@ -186,7 +164,7 @@ def opacity_loss(stats: SemanticStats, opacity_logits: jax.Array,
   return weight * jnp.sum(jnp.where(alive, s * alpha, 0.0)) / count
 
 
-def prune_masks(stats: SemanticStats, opacity_logits: jax.Array,
+def prune_masks(stats: state_lib.SemanticStats, opacity_logits: jax.Array,
                 alive: jax.Array, *, tau: float, n_min: float,
                 alpha_min: float, min_weight: float = 0.0
                 ) -> tuple[jax.Array, jax.Array]:
@@ -242,6 +220,6 @@ def guard_prune(semantic_mask: jax.Array, visibility_mask: jax.Array,
   return semantic_mask & keep, visibility_mask & keep, guarded
 
 
-def state_bytes(stats: SemanticStats) -> int:
+def state_bytes(stats: state_lib.SemanticStats) -> int:
   """Bytes of the per-slot semantic arrays (three float32 per slot)."""
   return int(sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(stats)))

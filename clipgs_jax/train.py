@@ -1,11 +1,10 @@
-"""Training state, the pure train step and `fit`, the training loop."""
+"""The pure train step and `fit`, the training loop."""
 
 import dataclasses
 import functools
 import logging
 import math
 import os
-from typing import Any
 
 import flax.struct
 import jax
@@ -27,6 +26,7 @@ from clipgs_jax import project
 from clipgs_jax import rasterize
 from clipgs_jax import semantic as semantic_lib
 from clipgs_jax import sh
+from clipgs_jax import state as state_lib
 
 _log = logging.getLogger(__name__)
 
@@ -36,32 +36,6 @@ _BACKGROUND_STREAM = 2
 _DENSIFY_STREAM = 3
 
 CHECKPOINT_NAME = "checkpoint.npz"
-
-
-@flax.struct.dataclass
-class TrainState:
-  """Everything that changes during training.
-
-  Attributes:
-    params: GaussianParams with capacity C.
-    alive: bool [C], slots in use.
-    opt_state: optax state of `optim.make` (per-field Adam).
-    densify: DensifyStats, per row, since the last densification.
-    semantic: SemanticStats, per row, CLIP-GS distractor statistics.
-    step: int32 [], finished optimisation steps.
-    key: PRNG key of the run; constant, per-step keys come from fold_in.
-  """
-  params: gaussians.GaussianParams
-  alive: jax.Array
-  opt_state: Any
-  densify: densify.DensifyStats
-  semantic: semantic_lib.SemanticStats
-  step: jax.Array
-  key: jax.Array
-
-  @property
-  def capacity(self) -> int:
-    return self.alive.shape[0]
 
 
 @flax.struct.dataclass
@@ -97,7 +71,7 @@ def make_optimizer(cfg: config_lib.Config) -> optax.GradientTransformation:
 
 
 def init_state(cfg: config_lib.Config, params: gaussians.GaussianParams,
-               alive) -> TrainState:
+               alive) -> state_lib.TrainState:
   """Step-0 state: zero moments and statistics, the run's key from seed."""
   if not cfg.scene_extent > 0:
     raise ValueError("train.init_state: cfg.scene_extent must be positive; "
@@ -106,11 +80,11 @@ def init_state(cfg: config_lib.Config, params: gaussians.GaussianParams,
   gaussians.validate(params, alive)
   params = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), params)
   capacity = alive.shape[0]
-  return TrainState(
+  return state_lib.TrainState(
       params=params, alive=alive,
       opt_state=make_optimizer(cfg).init(params),
-      densify=densify.DensifyStats.zeros(capacity),
-      semantic=semantic_lib.SemanticStats.zeros(capacity),
+      densify=state_lib.DensifyStats.zeros(capacity),
+      semantic=state_lib.SemanticStats.zeros(capacity),
       step=jnp.zeros((), jnp.int32),
       key=jax.random.key(cfg.train.seed))
 
@@ -137,9 +111,9 @@ def background(key: jax.Array, step: jax.Array, cfg: config_lib.Config
   return jnp.asarray(cfg.train.background, jnp.float32)
 
 
-def train_step(state: TrainState, batch: Batch, scorer=None, *,
+def train_step(state: state_lib.TrainState, batch: Batch, scorer=None, *,
                cfg: config_lib.Config
-               ) -> tuple[TrainState, dict[str, jax.Array]]:
+               ) -> tuple[state_lib.TrainState, dict[str, jax.Array]]:
   """One optimisation step on one training view.
 
   Renders the view (project + rasterize, with a zero offset on the splat
@@ -290,7 +264,7 @@ def resolve(cfg: config_lib.Config, scene) -> config_lib.Config:
   return dataclasses.replace(cfg, scene_extent=extent)
 
 
-def initial_state(cfg: config_lib.Config, scene) -> TrainState:
+def initial_state(cfg: config_lib.Config, scene) -> state_lib.TrainState:
   """Step-0 state from the scene's points (random points if it has none)."""
   cams = scene.train.cameras
   centers = -np.einsum("vji,vj->vi", np.asarray(cams.rotation, np.float64),

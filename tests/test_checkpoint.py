@@ -12,11 +12,9 @@ from absl.testing import absltest
 
 from clipgs_jax import checkpoint
 from clipgs_jax import config
-from clipgs_jax import densify
 from clipgs_jax import fileio
 from clipgs_jax import gaussians
-from clipgs_jax import optim
-from clipgs_jax import semantic
+from clipgs_jax import state as state_lib
 from clipgs_jax import train
 from test_train import synthetic_scene, TEST_CFG  # pylint: disable=g-bad-import-order
 
@@ -30,10 +28,10 @@ def _state(capacity=16, seed=0):
       lambda x: jnp.asarray(rng.normal(size=x.shape), jnp.float32), params)
   state = train.init_state(CFG, params, alive.at[:capacity // 2].set(True))
   state = state.replace(
-      opt_state=optim.map_rows(
+      opt_state=state_lib.map_rows(
           state.opt_state, capacity,
           lambda x: jnp.asarray(rng.normal(size=x.shape), x.dtype)),
-      semantic=semantic.SemanticStats(
+      semantic=state_lib.SemanticStats(
           acc=jnp.asarray(rng.random(capacity), jnp.float32),
           weight=jnp.asarray(rng.random(capacity), jnp.float32),
           n=jnp.arange(capacity, dtype=jnp.float32)),
@@ -71,7 +69,7 @@ class RoundTripTest(absltest.TestCase):
       json.loads(str(data["meta/config"]))
 
   def test_restore_into_other_capacity(self):
-    state = densify.resize(_state(capacity=16), 32)
+    state = state_lib.resize(_state(capacity=16), 32)
     path = os.path.join(self.create_tempdir().full_path, "ckpt.npz")
     checkpoint.save(path, state, CFG)
     restored, _ = checkpoint.restore(path, _state(capacity=16, seed=2))

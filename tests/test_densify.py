@@ -14,6 +14,7 @@ from clipgs_jax import optim
 from clipgs_jax import project
 from clipgs_jax import semantic
 from clipgs_jax import sh
+from clipgs_jax import state as state_lib
 from clipgs_jax import train
 
 CFG = config.Config(
@@ -34,18 +35,18 @@ def _tag_state(state, tags):
   moment row and both semantic statistics (0 means 'untagged')."""
   tags = jnp.asarray(tags, jnp.float32)
   params = state.params.replace(sh_dc=state.params.sh_dc.at[:, 0].set(tags))
-  opt_state = optim.map_rows(state.opt_state, state.capacity,
-                             lambda x: x.at[_first(x)].set(tags))
+  opt_state = state_lib.map_rows(state.opt_state, state.capacity,
+                                 lambda x: x.at[_first(x)].set(tags))
   return state.replace(
       params=params, opt_state=opt_state,
-      semantic=semantic.SemanticStats(acc=tags, weight=tags + 0.0,
-                                     n=tags + 0.0))
+      semantic=state_lib.SemanticStats(acc=tags, weight=tags + 0.0,
+                                       n=tags + 0.0))
 
 
 def _row_leaves(state):
   """All per-row moment leaves of the state as host arrays."""
   leaves = jax.tree.leaves(jax.device_get(state.opt_state))
-  return [x for x in leaves if optim.is_row_leaf(x, state.capacity)]
+  return [x for x in leaves if state_lib.is_row_leaf(x, state.capacity)]
 
 
 def _make_state(capacity, num_alive, rng):
@@ -70,7 +71,7 @@ def _drive(state, rng):
   params = state.params.replace(
       log_scales=jnp.asarray(log_scales, jnp.float32),
       opacity_logits=jnp.asarray(logits, jnp.float32))
-  stats = densify.DensifyStats(
+  stats = state_lib.DensifyStats(
       grad_accum=jnp.asarray(grad * 2, jnp.float32),
       denom=jnp.full((c,), 2.0, jnp.float32),
       max_radius=jnp.ones((c,), jnp.float32))
@@ -93,7 +94,7 @@ class RowAlignmentTest(absltest.TestCase):
     totals = dict(num_cloned=0, num_split=0, num_pruned=0, num_unplaced=0)
     for cycle in range(8):
       if cycle == 4:                                   # growth mid-run
-        state = densify.resize(state, 2 * state.capacity)
+        state = state_lib.resize(state, 2 * state.capacity)
       state = _drive(state, rng)
       before = jax.device_get(state)
       before_moments = _row_leaves(state)
@@ -107,7 +108,8 @@ class RowAlignmentTest(absltest.TestCase):
       self.assertEqual(
           after.alive.sum(), before.alive.sum() + info["num_cloned"]
           + info["num_split"] - info["num_pruned"])
-      chex.assert_trees_all_equal(after.densify, densify.DensifyStats.zeros(c))
+      chex.assert_trees_all_equal(after.densify,
+                                  state_lib.DensifyStats.zeros(c))
       tag_of = {int(t): r for r, t in enumerate(before.params.sh_dc[:, 0])
                 if before.alive[r]}
       num_new = 0
@@ -174,7 +176,7 @@ class DensifyTest(absltest.TestCase):
     state = state.replace(
         params=state.params.replace(
             log_scales=jnp.full((10, 3), SMALL, jnp.float32)),
-        densify=densify.DensifyStats(
+        densify=state_lib.DensifyStats(
             grad_accum=jnp.asarray(grad), denom=jnp.ones((10,)),
             max_radius=jnp.zeros((10,))))
     requests, free = densify.count_requests(state, cfg=CFG)
@@ -198,8 +200,8 @@ class DensifyTest(absltest.TestCase):
     state = state.replace(
         params=state.params.replace(log_scales=jnp.asarray(log_scales),
                                     opacity_logits=jnp.asarray(logits)),
-        densify=densify.DensifyStats(jnp.zeros(6), jnp.zeros(6),
-                                     jnp.asarray(radius)))
+        densify=state_lib.DensifyStats(jnp.zeros(6), jnp.zeros(6),
+                                       jnp.asarray(radius)))
     early, info = densify.densify(state.replace(step=jnp.int32(900)),
                                   jax.random.key(0), cfg=CFG)
     np.testing.assert_array_equal(early.alive, [0, 1, 1, 1, 1, 1])
@@ -211,7 +213,7 @@ class DensifyTest(absltest.TestCase):
   def test_resize(self):
     state = _make_state(8, 5, np.random.default_rng(3))
     state = _tag_state(state, np.arange(1, 9))
-    grown = densify.resize(state, 12)
+    grown = state_lib.resize(state, 12)
     self.assertEqual(grown.capacity, 12)
     np.testing.assert_array_equal(grown.params.means[:8], state.params.means)
     np.testing.assert_array_equal(grown.params.quats[8:],
@@ -222,11 +224,11 @@ class DensifyTest(absltest.TestCase):
       np.testing.assert_array_equal(m[8:], 0)
       np.testing.assert_array_equal(m[_first(m)][:8], np.arange(1, 9))
     np.testing.assert_array_equal(grown.semantic.acc[8:], 0)
-    shrunk = densify.resize(grown, 8)
+    shrunk = state_lib.resize(grown, 8)
     chex.assert_trees_all_equal(jax.device_get(shrunk.params),
                                 jax.device_get(state.params))
     with self.assertRaisesRegex(ValueError, "alive rows would be lost"):
-      densify.resize(state, 4)
+      state_lib.resize(state, 4)
 
   def test_reset_opacity(self):
     state = _make_state(4, 4, np.random.default_rng(4))
@@ -246,7 +248,7 @@ class DensifyTest(absltest.TestCase):
 class StatisticsTest(absltest.TestCase):
 
   def test_accumulate_in_ndc_units(self):
-    stats = densify.DensifyStats.zeros(3)
+    stats = state_lib.DensifyStats.zeros(3)
     g = jnp.array([[3e-6, 0.0], [0.0, 1e-6], [5.0, 5.0]])
     seen = jnp.array([True, True, False])
     stats = densify.accumulate(stats, g, seen, jnp.array([4.0, 2.0, 9.0]),

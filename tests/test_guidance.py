@@ -19,6 +19,7 @@ from clipgs_jax import config
 from clipgs_jax import densify
 from clipgs_jax import guidance
 from clipgs_jax import semantic
+from clipgs_jax import state as state_lib
 from clipgs_jax import train
 from test_densify import CFG as DENSIFY_CFG  # pylint: disable=g-bad-import-order
 from test_densify import _drive, _make_state, _row_leaves, _tag_state  # pylint: disable=g-bad-import-order
@@ -53,9 +54,9 @@ def _state_with_stats(acc, n, opacity, alive):
       alive=jnp.asarray(alive),
       params=state.params.replace(
           opacity_logits=jnp.asarray(logits, jnp.float32)),
-      semantic=semantic.SemanticStats(acc=jnp.asarray(acc, jnp.float32),
-                                     weight=jnp.asarray(n, jnp.float32),
-                                     n=jnp.asarray(n, jnp.float32)))
+      semantic=state_lib.SemanticStats(acc=jnp.asarray(acc, jnp.float32),
+                                       weight=jnp.asarray(n, jnp.float32),
+                                       n=jnp.asarray(n, jnp.float32)))
 
 
 class ScheduleTest(parameterized.TestCase):
@@ -95,8 +96,8 @@ class ScheduleTest(parameterized.TestCase):
                 if s not in (3250, 3500, 6250, 6500)]
     self.assertEqual(due, expected)
     logits = jnp.zeros(4)
-    stats = semantic.SemanticStats(acc=jnp.ones(4), weight=jnp.ones(4),
-                                   n=jnp.ones(4))
+    stats = state_lib.SemanticStats(acc=jnp.ones(4), weight=jnp.ones(4),
+                                    n=jnp.ones(4))
     alive = jnp.ones(4, bool)
     loss = jax.jit(lambda step: guidance.opacity_regularizer(
         stats, logits, alive, step, cfg))
@@ -205,7 +206,7 @@ class ScorerTest(absltest.TestCase):
     masks = np.zeros((1, 2, 2), bool)
     masks[0, 0, 0] = True                       # f = 0.25
     scorer = guidance.OracleScorer(masks=jnp.asarray(masks), saturation=0.5)
-    stats = semantic.SemanticStats.zeros(3)
+    stats = state_lib.SemanticStats.zeros(3)
     visible = jnp.array([True, False, True])
     image = jnp.zeros((2, 2, 3))
     fn = jax.jit(guidance.score_and_accumulate, static_argnums=(7,))
@@ -304,7 +305,7 @@ class PruneTest(parameterized.TestCase):
       n = np.where(rng.random(64) < 0.2, 1.0, 2.0 * tags)
       acc = np.where(n == 1.0, tags, 0.0)
       n = jnp.asarray(np.where(host.alive, n, 0.0), jnp.float32)
-      state = state.replace(semantic=semantic.SemanticStats(
+      state = state.replace(semantic=state_lib.SemanticStats(
           acc=jnp.asarray(acc, jnp.float32), weight=n, n=n))
       before = jax.device_get(state)
       state, info = prune_fn(state)

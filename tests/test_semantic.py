@@ -6,12 +6,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from clipgs_jax import semantic
+from clipgs_jax import state as state_lib
 
 
 def _stats(acc, n, weight=None):
   """Statistics; weight defaults to n (visibility weighting)."""
   n = jnp.asarray(n, jnp.float32)
-  return semantic.SemanticStats(
+  return state_lib.SemanticStats(
       acc=jnp.asarray(acc, jnp.float32),
       weight=n if weight is None else jnp.asarray(weight, jnp.float32), n=n)
 
@@ -146,7 +147,7 @@ class NormalizeLossPruneTest(parameterized.TestCase):
     np.testing.assert_array_equal(vis, [True, False])
 
   def test_pixel_evidence_is_a_probability(self):
-    stats = semantic.SemanticStats.zeros(3)
+    stats = state_lib.SemanticStats.zeros(3)
     # Row 0 lies fully on transient pixels, row 1 half, row 2 unseen.
     evidence = jnp.array([2.0, 0.5, 0.0])
     contribution = jnp.array([2.0, 1.0, 0.0])
@@ -193,5 +194,5 @@ class NormalizeLossPruneTest(parameterized.TestCase):
     self.assertFalse(bool(out_vis.any()))
 
   def test_three_float32_per_slot(self):
-    self.assertEqual(semantic.state_bytes(semantic.SemanticStats.zeros(1000)),
+    self.assertEqual(semantic.state_bytes(state_lib.SemanticStats.zeros(1000)),
                      12000)
