@@ -344,9 +344,7 @@ def semantic_overhead(scene_path: str, downscale: int, *,
   loss on; scenes with masks only); clip/k=K (CLIP scorer with random
   weights, scoring every K-th step). Each is compiled and warmed up over
   one full scoring cycle, then timed round-robin (one step each in turn,
-  so a change in load shifts them all alike) for `steps` steps. (The
-  former "off" variant, a CLIP scorer without distractor prompts, is now
-  rejected by guidance.validate and was dropped.)
+  so a change in load shifts them all alike) for `steps` steps.
 
   Returns:
     One dict per variant: mean wall / CPU ms per step and the overhead

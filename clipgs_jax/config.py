@@ -1,4 +1,8 @@
-"""Frozen configuration dataclasses with the paper's and 3DGS's defaults."""
+"""Frozen configuration dataclasses with the paper's and 3DGS's defaults.
+
+`check` turns a config file's ConfigDict into a Config and is the one
+place where a run's config is checked, before any scene or weights load.
+"""
 
 import dataclasses
 import functools
@@ -7,7 +11,13 @@ import os
 import types
 import typing
 
+from absl import app
 import ml_collections
+
+from clipgs_jax import cli
+from clipgs_jax import metrics as metrics_lib
+from clipgs_jax.data import default_scene
+from clipgs_jax.data import scene as scene_lib
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,7 +104,7 @@ class TrainConfig:
   checkpoint_every: int = 5000  # 0 = only at the end
 
 
-# The paper's prompt sets (DESIGN.md): distractors D and static scene S.
+# The paper's prompt sets: distractors D and static scene S (eqs. 5-7).
 PAPER_DISTRACTOR_PROMPTS = ("a photo of a person", "a photo of people",
                             "a photo of pedestrians", "a photo of hands",
                             "a photo of a balloon")
@@ -115,7 +125,7 @@ EVIDENCES = ("image", "pixel")
 
 @dataclasses.dataclass(frozen=True)
 class SemanticConfig:
-  """CLIP-GS semantic guidance (paper defaults; DESIGN.md steps 1-8).
+  """The CLIP-GS semantic stage (paper defaults, eqs. 5-13).
 
   Steps count finished steps, as in DensifyConfig. The step that starts at
   `step` scores its view when step >= accumulate_start and
@@ -165,7 +175,7 @@ class SemanticConfig:
 
   @property
   def enabled(self) -> bool:
-    """Guidance runs: a scorer is chosen (guidance.validate rejects a CLIP
+    """Guidance runs: a scorer is chosen (config.check rejects a CLIP
     scorer without distractor prompts instead of running vanilla)."""
     return self.scorer != "off"
 
@@ -346,24 +356,19 @@ def _build(cls, values, prefix: str):
   return cls(**kwargs)
 
 
-def _positive(ok: bool, key: str, value, fix: str) -> None:
-  if not ok:
-    raise ValueError(f"--config.{key}={value} {fix}")
-
-
 def from_config_dict(cd: ml_collections.ConfigDict, *,
                      auto_steps: int = TrainConfig.steps) -> Config:
-  """The frozen Config that a config file (ConfigDict) describes.
+  """The frozen Config that a config file (ConfigDict) describes, unchecked.
 
-  Every key must be a Config field (unknown keys raise, named), except
-  semantic.scale_schedule (see SCALE_SCHEDULE). train.steps None means
-  `auto_steps`; eval.curve_points > 0 sets train.eval_every. Values are
-  checked here, before any scene or weights are read.
+  Every key must be a Config field of the field's type (unknown keys and
+  wrong types raise ValueError, named), except semantic.scale_schedule
+  (see SCALE_SCHEDULE). train.steps None means `auto_steps`;
+  eval.curve_points > 0 sets train.eval_every. The values are checked by
+  `check`, which calls this.
 
   Args:
     cd: the ConfigDict (configs/*.py get_config(), with overrides).
-    auto_steps: int, the steps of a config whose train.steps is None
-      (the runner passes default_scene.TRAIN_STEPS for the embedded scene).
+    auto_steps: int, the steps of a config whose train.steps is None.
   Returns:
     Config.
   """
@@ -376,6 +381,104 @@ def from_config_dict(cd: ml_collections.ConfigDict, *,
     train["steps"] = auto_steps
   cfg = _build(Config, dict(values, semantic=sem, train=train), "")
   t = cfg.train
+  if cfg.eval.curve_points > 0:
+    t = dataclasses.replace(
+        t, eval_every=max(1, t.steps // cfg.eval.curve_points))
+  sem = cfg.semantic.scaled_to(t.steps) if scale else cfg.semantic
+  return dataclasses.replace(cfg, train=t, semantic=sem)
+
+
+def _positive(ok: bool, key: str, value, fix: str) -> None:
+  if not ok:
+    raise app.UsageError(f"--config.{key}={value} {fix}")
+
+
+def _semantic_problems(sem: SemanticConfig) -> list[str]:
+  """What makes a SemanticConfig unable to run, one phrase per field."""
+  problems = []
+  if sem.scorer not in SCORERS:
+    problems.append(f"scorer={sem.scorer!r} is not one of "
+                    f"{', '.join(SCORERS)}")
+  if sem.evidence not in EVIDENCES:
+    problems.append(f"evidence={sem.evidence!r} is not one of "
+                    f"{', '.join(EVIDENCES)}")
+  if sem.scorer == "clip" and not sem.distractor_prompts:
+    problems.append("scorer='clip' has no distractor prompts; give some "
+                    "(e.g. the paper's) or use scorer='off' for vanilla 3DGS")
+  if (sem.scorer == "clip" and sem.evidence == "pixel"
+      and not sem.static_prompts):
+    problems.append("scorer='clip' with evidence='pixel' needs static "
+                    "prompts: p(distractor) is a softmax over D and S, which "
+                    "is identically 1 without S")
+  if not 0.0 <= sem.tau_p <= 1.0:
+    problems.append(f"tau_p={sem.tau_p} is not in [0, 1]")
+  if not 0.0 < sem.max_prune_fraction <= 1.0:
+    problems.append(f"max_prune_fraction={sem.max_prune_fraction} is not in "
+                    "(0, 1] (1.0 lifts the guard)")
+  if sem.scorer == "uniform" and sem.evidence != "pixel":
+    problems.append("scorer='uniform' is a per-pixel control map; it needs "
+                    "evidence='pixel'")
+  if sem.loss_masking and sem.evidence != "pixel":
+    problems.append("loss_masking needs evidence='pixel' (a per-pixel map)")
+  if sem.dense_input_size <= 0:
+    problems.append(f"dense_input_size={sem.dense_input_size} must be a "
+                    "positive multiple of the ViT's patch size")
+  if sem.weighting not in WEIGHTINGS:
+    problems.append(f"weighting={sem.weighting!r} is not one of "
+                    f"{', '.join(WEIGHTINGS)}")
+  if not 0.0 <= sem.tau <= 1.0:
+    problems.append(f"tau={sem.tau} is not in [0, 1]")
+  if not sem.beta > 0:
+    problems.append(f"beta={sem.beta} must be positive")
+  if not sem.lambda_c >= 0:
+    problems.append(f"lambda_c={sem.lambda_c} must be >= 0")
+  if (sem.enabled and sem.lambda_c == 0 and not sem.prune
+      and not sem.loss_masking):
+    problems.append("lambda_c=0 with prune and loss_masking off leaves "
+                    "guidance nothing to do; use scorer='off' for vanilla "
+                    "3DGS")
+  for name in ("accumulate_start", "reg_start", "prune_start",
+               "reset_quiet"):
+    if getattr(sem, name) < 0:
+      problems.append(f"{name}={getattr(sem, name)} must be >= 0")
+  for name in ("prune_every", "score_every"):
+    if getattr(sem, name) < 1:
+      problems.append(f"{name}={getattr(sem, name)} must be >= 1")
+  if not 0.0 < sem.oracle_saturation <= 1.0:
+    problems.append(f"oracle_saturation={sem.oracle_saturation} is not in "
+                    "(0, 1]")
+  if any(not p.strip() for p in sem.distractor_prompts + sem.static_prompts):
+    problems.append("a prompt is empty")
+  return problems
+
+
+def check(values: dict | ml_collections.ConfigDict) -> Config:
+  """The checked Config of one run: every config check, in one place.
+
+  Runs before any scene or weights are read (only the scene's existence
+  is): keys and types (`from_config_dict`), then every value. train.steps
+  None means default_scene.TRAIN_STEPS on the embedded scene (data.scene
+  None) and TrainConfig's 30k on a scene folder. data.scene becomes an
+  absolute path, so that --resume from another folder matches.
+
+  Args:
+    values: a config file's ConfigDict (with overrides), or its dict.
+  Returns:
+    Config.
+  Raises:
+    app.UsageError: a bad key or value; the line names it as
+      --config.SECTION.FIELD and says the fix.
+    FileNotFoundError: data.scene is neither a folder nor a pack file.
+  """
+  if isinstance(values, ml_collections.ConfigDict):
+    values = values.to_dict()
+  embedded = (values.get("data") or {}).get("scene") is None
+  auto = default_scene.TRAIN_STEPS if embedded else TrainConfig.steps
+  try:
+    cfg = from_config_dict(values, auto_steps=auto)
+  except ValueError as e:
+    raise app.UsageError(str(e)) from e
+  t = cfg.train
   _positive(t.steps > 0, "train.steps", t.steps, "must be positive")
   _positive(t.checkpoint_every >= 0, "train.checkpoint_every",
             t.checkpoint_every, "must be >= 0 (0: only at the end)")
@@ -384,13 +487,27 @@ def from_config_dict(cd: ml_collections.ConfigDict, *,
             "log warns that tile-list entries were dropped")
   _positive(cfg.data.downscale >= 1, "data.downscale", cfg.data.downscale,
             "must be a positive integer (1: full size)")
-  points = cfg.eval.curve_points
-  _positive(points >= 0, "eval.curve_points", points,
-            "must be >= 0 (0: keep train.eval_every)")
-  if points > 0:
-    t = dataclasses.replace(t, eval_every=max(1, t.steps // points))
-  sem = cfg.semantic.scaled_to(t.steps) if scale else cfg.semantic
-  return dataclasses.replace(cfg, train=t, semantic=sem)
+  _positive(cfg.eval.curve_points >= 0, "eval.curve_points",
+            cfg.eval.curve_points, "must be >= 0 (0: keep train.eval_every)")
+  problems = _semantic_problems(cfg.semantic)
+  if problems:
+    raise app.UsageError("--config.semantic: SemanticConfig: "
+                         + "; ".join(problems) + ".")
+  data, ev = cfg.data, cfg.eval
+  cli.require(data.train_split in scene_lib.TRAIN_SPLITS,
+              "config.data.train_split", data.train_split,
+              f"is not one of {', '.join(scene_lib.TRAIN_SPLITS)}")
+  nets = metrics_lib.LPIPS_NETS
+  cli.require(ev.lpips_net in nets, "config.eval.lpips_net", ev.lpips_net,
+              f"is not one of {', '.join(nets)}")
+  if data.scene is None:
+    return cfg
+  if data.scene.endswith(scene_lib.PACK_SUFFIX):
+    cli.require_file("scene", data.scene)
+  else:
+    cli.require_folder("scene", data.scene)
+  return dataclasses.replace(cfg, data=dataclasses.replace(
+      data, scene=os.path.abspath(data.scene)))
 
 
 def to_config_dict(cfg: Config) -> ml_collections.ConfigDict:

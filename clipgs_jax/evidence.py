@@ -29,7 +29,7 @@ from clipgs_jax import fileio
 from clipgs_jax import plots
 from clipgs_jax import project as project_lib
 from clipgs_jax import rasterize
-from clipgs_jax import report
+from clipgs_jax import run as run_lib
 from clipgs_jax import semantic
 from clipgs_jax.data import billboards
 
@@ -164,7 +164,7 @@ def evidence_report(workdir: str, bins: int = 10) -> dict:
   """
   if bins < 1:
     raise ValueError(f"bins must be >= 1, got {bins}.")
-  run, cfg, scene, state = report.load_state(workdir)
+  run, cfg, scene, state = run_lib.load_state(workdir)
   path = os.path.join(run["scene"], "transients.json")
   if not os.path.isfile(path):
     raise FileNotFoundError(f"{path} is missing: the run's scene is not a "

@@ -104,80 +104,19 @@ class OracleScorer:
             "s_hat_s": jnp.float32(jnp.nan)}
 
 
-def validate(sem: config_lib.SemanticConfig) -> None:
-  """Rejects a SemanticConfig that cannot run, naming the field."""
-  problems = []
-  if sem.scorer not in config_lib.SCORERS:
-    problems.append(f"scorer={sem.scorer!r} is not one of "
-                    f"{', '.join(config_lib.SCORERS)}")
-  if sem.evidence not in config_lib.EVIDENCES:
-    problems.append(f"evidence={sem.evidence!r} is not one of "
-                    f"{', '.join(config_lib.EVIDENCES)}")
-  if sem.scorer == "clip" and not sem.distractor_prompts:
-    problems.append("scorer='clip' has no distractor prompts; give some "
-                    "(e.g. the paper's) or use scorer='off' for vanilla 3DGS")
-  if (sem.scorer == "clip" and sem.evidence == "pixel"
-      and not sem.static_prompts):
-    problems.append("scorer='clip' with evidence='pixel' needs static "
-                    "prompts: p(distractor) is a softmax over D and S, which "
-                    "is identically 1 without S")
-  if not 0.0 <= sem.tau_p <= 1.0:
-    problems.append(f"tau_p={sem.tau_p} is not in [0, 1]")
-  if not 0.0 < sem.max_prune_fraction <= 1.0:
-    problems.append(f"max_prune_fraction={sem.max_prune_fraction} is not in "
-                    "(0, 1] (1.0 lifts the guard)")
-  if sem.scorer == "uniform" and sem.evidence != "pixel":
-    problems.append("scorer='uniform' is a per-pixel control map; it needs "
-                    "evidence='pixel'")
-  if sem.loss_masking and sem.evidence != "pixel":
-    problems.append("loss_masking needs evidence='pixel' (a per-pixel map)")
-  if sem.dense_input_size <= 0:
-    problems.append(f"dense_input_size={sem.dense_input_size} must be a "
-                    "positive multiple of the ViT's patch size")
-  if sem.weighting not in config_lib.WEIGHTINGS:
-    problems.append(f"weighting={sem.weighting!r} is not one of "
-                    f"{', '.join(config_lib.WEIGHTINGS)}")
-  if not 0.0 <= sem.tau <= 1.0:
-    problems.append(f"tau={sem.tau} is not in [0, 1]")
-  if not sem.beta > 0:
-    problems.append(f"beta={sem.beta} must be positive")
-  if not sem.lambda_c >= 0:
-    problems.append(f"lambda_c={sem.lambda_c} must be >= 0")
-  if (sem.enabled and sem.lambda_c == 0 and not sem.prune
-      and not sem.loss_masking):
-    problems.append("lambda_c=0 with prune and loss_masking off leaves "
-                    "guidance nothing to do; use scorer='off' for vanilla "
-                    "3DGS")
-  for name in ("accumulate_start", "reg_start", "prune_start",
-               "reset_quiet"):
-    if getattr(sem, name) < 0:
-      problems.append(f"{name}={getattr(sem, name)} must be >= 0")
-  for name in ("prune_every", "score_every"):
-    if getattr(sem, name) < 1:
-      problems.append(f"{name}={getattr(sem, name)} must be >= 1")
-  if not 0.0 < sem.oracle_saturation <= 1.0:
-    problems.append(f"oracle_saturation={sem.oracle_saturation} is not in "
-                    "(0, 1]")
-  if any(not p.strip() for p in sem.distractor_prompts + sem.static_prompts):
-    problems.append("a prompt is empty")
-  if problems:
-    raise ValueError("SemanticConfig: " + "; ".join(problems) + ".")
-
-
 def make_scorer(sem: config_lib.SemanticConfig, scene, *,
                 clip_weights: str | None = None,
                 clip_params: tuple[Any, dict] | None = None):
   """The scorer `sem` asks for, or None when guidance is off.
 
   Args:
-    sem: the semantic config; `sem.enabled` False (scorer "off") returns
-      None and imports nothing.
+    sem: the checked semantic config (config.check); `sem.enabled` False
+      (scorer "off") returns None and imports nothing.
     scene: a data.scene.Scene; the oracle reads `scene.train.masks`.
     clip_weights: the --clip_weights flag (else $CLIPGS_CLIP_WEIGHTS).
     clip_params: (ClipConfig, params) to use instead of a weights file
       (benchmarks with random weights, tests).
   """
-  validate(sem)
   if not sem.enabled:
     return None
   if sem.scorer in ("oracle", "uniform"):

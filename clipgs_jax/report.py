@@ -22,36 +22,6 @@ TRAIN_RENDERS = os.path.join("renders", "train")   # colour, training views
 MASK_RENDERS = os.path.join("renders", "masks")    # transient alpha, grey
 
 
-def _checkpoint_path(workdir: str) -> str:
-  return os.path.join(workdir, train.CHECKPOINT_NAME)
-
-
-def load_state(workdir: str):
-  """(run.json dict, resolved config, scene, TrainState) of a run folder.
-
-  Raises:
-    FileNotFoundError: the folder, run.json, config.json or the checkpoint
-      is missing (the PLY lacks the semantic statistics).
-  """
-  if not os.path.isdir(workdir):
-    raise FileNotFoundError(f"{workdir} is not a folder; pass a run folder "
-                            "written by experiments/train.py.")
-  for name in (run_lib.RUN_JSON, run_lib.CONFIG_JSON):
-    if not os.path.exists(os.path.join(workdir, name)):
-      raise FileNotFoundError(f"{os.path.join(workdir, name)} is missing; "
-                              "pass a run folder written by "
-                              "experiments/train.py.")
-  ckpt = _checkpoint_path(workdir)
-  if not os.path.exists(ckpt):   # checked before the scene is loaded
-    raise FileNotFoundError(
-        f"{ckpt} is missing; rendering needs the trained state (the PLY "
-        "lacks the semantic scores): rerun experiments/train.py into this "
-        "folder, or with --resume if it was interrupted.")
-  run, cfg, scene = run_lib.load_run(workdir)
-  state, _ = checkpoint.restore(ckpt, train.initial_state(cfg, scene))
-  return run, cfg, scene, state
-
-
 def _read_metrics(workdir: str) -> dict:
   path = os.path.join(workdir, run_lib.METRICS_JSON)
   if not os.path.exists(path):
@@ -80,7 +50,7 @@ def recompute_metrics(workdir: str, source: str = "auto",
   if source not in SOURCES:
     raise ValueError(f"source={source!r}; pass one of {SOURCES}.")
   run, cfg, scene = run_lib.load_run(workdir)
-  ckpt = _checkpoint_path(workdir)
+  ckpt = os.path.join(workdir, train.CHECKPOINT_NAME)
   ply_path = os.path.join(workdir, run_lib.POINT_CLOUD_PLY)
   if source == "auto":
     source = "checkpoint" if os.path.exists(ckpt) else "ply"
@@ -144,7 +114,7 @@ def _write_pngs(folder: str, names, pixels) -> None:
 
 def render_colour(workdir: str) -> str:
   """Writes the training views' colour renders; returns their folder."""
-  _, cfg, scene, state = load_state(workdir)
+  _, cfg, scene, state = run_lib.load_state(workdir)
   colours, _ = render_views(state.params, state.alive, scene.train, cfg)
   out_dir = os.path.join(workdir, TRAIN_RENDERS)
   _write_pngs(out_dir, scene.train.names, colours)
@@ -168,7 +138,7 @@ def render_masks(workdir: str, tau: float | None = None) -> dict:
     the block written to metrics.json, or None when the scene has no
     masks (then only the PNGs are written)}.
   """
-  _, cfg, scene, state = load_state(workdir)
+  _, cfg, scene, state = run_lib.load_state(workdir)
   tau = cfg.semantic.tau if tau is None else float(tau)
   chosen = transient_selection(state, tau)
   num_chosen = int(chosen.sum())

@@ -1,8 +1,9 @@
-"""A run folder: train, evaluate and write every artefact of one run.
+"""One run: load its scene, train, evaluate and write its run folder.
 
-The scripts in experiments/ and the notebook call `train_and_evaluate`;
-this module is the one place that knows the artefacts' names. Every file is
-written atomically (temp file + rename).
+experiments/train.py, the sweeps of clipgs_jax/lab and the notebook call
+`train_and_evaluate(cfg, workdir)`; this module is the one place that knows
+the artefacts' names. Every file is written atomically (temp file +
+rename).
 """
 
 import datetime
@@ -13,9 +14,13 @@ import resource
 import time
 from typing import Any
 
+from absl import app
+from absl import logging
 import jax
 import numpy as np
 
+from clipgs_jax import checkpoint
+from clipgs_jax import cli
 from clipgs_jax import config as config_lib
 from clipgs_jax import evaluation
 from clipgs_jax import fileio
@@ -24,6 +29,7 @@ from clipgs_jax import loop
 from clipgs_jax import plots
 from clipgs_jax import ply
 from clipgs_jax import train
+from clipgs_jax.data import default_scene
 from clipgs_jax.data import images as images_lib
 from clipgs_jax.data import scene as scene_lib
 
@@ -86,6 +92,32 @@ def load_run(workdir: str):
   return run, cfg, scene
 
 
+def load_state(workdir: str):
+  """(run.json dict, resolved config, scene, TrainState) of a run folder.
+
+  Raises:
+    FileNotFoundError: the folder, run.json, config.json or the checkpoint
+      is missing (the PLY lacks the semantic statistics).
+  """
+  if not os.path.isdir(workdir):
+    raise FileNotFoundError(f"{workdir} is not a folder; pass a run folder "
+                            "written by experiments/train.py.")
+  for name in (RUN_JSON, CONFIG_JSON):
+    if not os.path.exists(os.path.join(workdir, name)):
+      raise FileNotFoundError(f"{os.path.join(workdir, name)} is missing; "
+                              "pass a run folder written by "
+                              "experiments/train.py.")
+  ckpt = os.path.join(workdir, train.CHECKPOINT_NAME)
+  if not os.path.exists(ckpt):   # checked before the scene is loaded
+    raise FileNotFoundError(
+        f"{ckpt} is missing; rendering needs the trained state (the PLY "
+        "lacks the semantic scores): rerun experiments/train.py into this "
+        "folder, or with --resume if it was interrupted.")
+  run, cfg, scene = load_run(workdir)
+  state, _ = checkpoint.restore(ckpt, train.initial_state(cfg, scene))
+  return run, cfg, scene, state
+
+
 def semantic_label(sem: config_lib.SemanticConfig) -> str:
   """How tables and logs name a run's guidance; oracles say so."""
   if not sem.enabled:
@@ -141,29 +173,73 @@ def _write_semantic_logs(workdir: str, cfg: config_lib.Config,
   return block
 
 
-def train_and_evaluate(cfg: config_lib.Config, scene, workdir: str, *,
-                       scorer=None, lpips_net: str = "alex",
-                       resume: bool = False, progress: bool = True,
+def train_and_evaluate(cfg: config_lib.Config, workdir: str, *,
+                       resume: bool = False, clip_weights: str | None = None,
+                       progress: bool = True,
                        run_info: dict[str, Any] | None = None) -> dict:
-  """Trains on `scene`, evaluates on its test views, writes the run folder.
+  """Trains the run `cfg` describes, evaluates it, writes its run folder.
+
+  Loads the scene (cfg.data: a folder, a pack, or None for the embedded
+  scene), fills in its extent (train.resolve, once), builds the scorer
+  (guidance.make_scorer), trains (train.fit), evaluates on the test views
+  and writes every artefact into `workdir`. The checkpoint's metadata
+  (resume), the scene and the CLIP weights are read before anything is
+  written; a run that fails before its first checkpoint leaves no folder
+  behind (cli.output_dir).
 
   Args:
-    cfg: the config (scene-dependent fields are resolved here).
-    scene: a data.scene.Scene.
+    cfg: the checked config (config.check).
     workdir: the run folder (created).
-    scorer: guidance.make_scorer(cfg.semantic, scene, ...), None when
-      guidance is off.
-    lpips_net: "alex" or "vgg", named in the metrics.
     resume: continue from the folder's checkpoint.
+    clip_weights: CLIP weights for clip scorers (else
+      $CLIPGS_CLIP_WEIGHTS).
     progress: a tqdm bar.
-    run_info: extra run.json fields (scene path, downscale, argv, ...).
+    run_info: extra run.json fields (the config file, argv, ...).
   Returns:
     The metrics.json dict.
+  Raises:
+    app.UsageError: the scorer cannot be built (no masks, no weights).
   """
+  workdir = os.path.abspath(workdir)
+  ckpt_path = os.path.join(workdir, train.CHECKPOINT_NAME)
+  resuming = resume and os.path.exists(ckpt_path)
+  if resuming:
+    checkpoint.read_meta(ckpt_path)      # a corrupt file fails here, early
+  embedded = cfg.data.scene is None
+  scene_path = (default_scene.ensure_default_scene() if embedded
+                else cfg.data.scene)
+  scene = scene_lib.load_scene(scene_path, downscale=cfg.data.downscale,
+                               train_split=cfg.data.train_split)
   cfg = train.resolve(cfg, scene)
+  if resuming:
+    checkpoint.check_resumable(ckpt_path, cfg)
+  height, width = scene.train.images.shape[1:3]
+  logging.info("scene %s: %d train / %d test views, %dx%d, %d points, "
+               "extent %.3f", scene_path, len(scene.train.names),
+               len(scene.test.names), width, height, len(scene.points),
+               scene.extent)
+  try:
+    scorer = guidance.make_scorer(cfg.semantic, scene,
+                                  clip_weights=clip_weights)
+  except (ValueError, FileNotFoundError) as e:
+    raise app.UsageError(f"--config.semantic.scorer={cfg.semantic.scorer}: "
+                         f"{e}") from e
+  info = {"scene": os.path.abspath(scene_path), "embedded_scene": embedded,
+          "downscale": cfg.data.downscale,
+          "train_split": cfg.data.train_split, **(run_info or {})}
+  with cli.output_dir(workdir, keep=train.CHECKPOINT_NAME):
+    return _train_into(cfg, scene, workdir, scorer=scorer, resume=resume,
+                       progress=progress, run_info=info)
+
+
+def _train_into(cfg: config_lib.Config, scene, workdir: str, *, scorer,
+                resume: bool, progress: bool, run_info: dict[str, Any]
+                ) -> dict:
+  """Trains the resolved `cfg` on `scene` and writes the run folder."""
+  lpips_net = cfg.eval.lpips_net
   os.makedirs(workdir, exist_ok=True)
   fileio.write_json(os.path.join(workdir, RUN_JSON), dict(
-      run_info or {}, lpips_net=lpips_net,
+      run_info, lpips_net=lpips_net,
       guidance=semantic_label(cfg.semantic)))
   fileio.write_json(os.path.join(workdir, CONFIG_JSON),
                     config_lib.to_dict(cfg))

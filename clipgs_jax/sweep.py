@@ -1,13 +1,12 @@
-"""Runs what a config file describes: one run, or a sweep of rows.
+"""Runs a sweep: the rows x benchmarks of a config file's `sweep` section.
 
-A config (configs/*.py) describes one run, or, with a `sweep` section, rows
-x benchmarks: each row is the base config plus the row's overrides, run in
-this process into workdir/<benchmark>/<row>/ and collected into a table
-(kinds: table, ablate, tau_sweep) or a side-by-side comparison (demo).
-Rows resume, and a row whose metrics.json has its train.steps is skipped.
+Each row is the base config plus the row's overrides, run in this process
+(run.train_and_evaluate) into workdir/<benchmark>/<row>/ and collected into
+a table (kinds: table, ablate, tau_sweep) or a side-by-side comparison
+(demo). Rows resume, and a row whose metrics.json has its train.steps is
+skipped.
 """
 
-import dataclasses
 import json
 import os
 from typing import Any
@@ -17,18 +16,13 @@ from absl import logging
 import ml_collections
 import numpy as np
 
-from clipgs_jax import checkpoint
 from clipgs_jax import cli
 from clipgs_jax import config as config_lib
 from clipgs_jax import fileio
-from clipgs_jax import guidance
-from clipgs_jax import metrics as metrics_lib
 from clipgs_jax import plots
 from clipgs_jax import run as run_lib
 from clipgs_jax import table
 from clipgs_jax import tau_sweep
-from clipgs_jax import train
-from clipgs_jax.data import default_scene
 from clipgs_jax.data import images as images_lib
 from clipgs_jax.data import scene as scene_lib
 
@@ -43,89 +37,6 @@ def _merge(base: dict, overrides: dict) -> dict:
       value = _merge(out[key], value)
     out[key] = value
   return out
-
-
-def build(values: dict | ml_collections.ConfigDict) -> config_lib.Config:
-  """The checked Config of one run; a bad value raises app.UsageError.
-
-  train.steps None means default_scene.TRAIN_STEPS on the embedded scene
-  (data.scene None) and TrainConfig's 30k on a scene folder. Nothing is
-  read but the scene's existence.
-  """
-  if isinstance(values, ml_collections.ConfigDict):
-    values = values.to_dict()
-  embedded = (values.get("data") or {}).get("scene") is None
-  auto = (default_scene.TRAIN_STEPS if embedded
-          else config_lib.TrainConfig.steps)
-  try:
-    cfg = config_lib.from_config_dict(values, auto_steps=auto)
-  except ValueError as e:
-    raise app.UsageError(str(e)) from e
-  try:
-    guidance.validate(cfg.semantic)
-  except ValueError as e:
-    raise app.UsageError(f"--config.semantic: {e}") from e
-  data, ev = cfg.data, cfg.eval
-  cli.require(data.train_split in scene_lib.TRAIN_SPLITS,
-              "config.data.train_split", data.train_split,
-              f"is not one of {', '.join(scene_lib.TRAIN_SPLITS)}")
-  nets = metrics_lib.LPIPS_NETS
-  cli.require(ev.lpips_net in nets, "config.eval.lpips_net", ev.lpips_net,
-              f"is not one of {', '.join(nets)}")
-  if data.scene is not None and data.scene.endswith(scene_lib.PACK_SUFFIX):
-    cli.require_file("scene", data.scene)
-  else:
-    cli.require_folder("scene", data.scene)
-  if data.scene is None:
-    return cfg
-  # An absolute path, so that --resume from another folder matches.
-  return dataclasses.replace(cfg, data=dataclasses.replace(
-      data, scene=os.path.abspath(data.scene)))
-
-
-def train_one(cfg: config_lib.Config, workdir: str, *, resume: bool = False,
-              clip_weights: str | None = None,
-              run_info: dict[str, Any] | None = None) -> dict:
-  """Trains and evaluates one checked config (`build`) into `workdir`.
-
-  Reads the checkpoint's metadata (resume), the scene and the CLIP
-  weights before writing anything; a run that fails before its first
-  checkpoint leaves no folder behind.
-
-  Returns:
-    The run's metrics.json dict.
-  """
-  workdir = os.path.abspath(workdir)
-  ckpt_path = os.path.join(workdir, train.CHECKPOINT_NAME)
-  resuming = resume and os.path.exists(ckpt_path)
-  if resuming:
-    checkpoint.read_meta(ckpt_path)      # a corrupt file fails here, early
-  embedded = cfg.data.scene is None
-  scene_path = (default_scene.ensure_default_scene() if embedded
-                else cfg.data.scene)
-  scene = scene_lib.load_scene(scene_path, downscale=cfg.data.downscale,
-                               train_split=cfg.data.train_split)
-  cfg = train.resolve(cfg, scene)
-  if resuming:
-    checkpoint.check_resumable(ckpt_path, cfg)
-  height, width = scene.train.images.shape[1:3]
-  logging.info("scene %s: %d train / %d test views, %dx%d, %d points, "
-               "extent %.3f", scene_path, len(scene.train.names),
-               len(scene.test.names), width, height, len(scene.points),
-               scene.extent)
-  try:
-    scorer = guidance.make_scorer(cfg.semantic, scene,
-                                  clip_weights=clip_weights)
-  except (ValueError, FileNotFoundError) as e:
-    raise app.UsageError(f"--config.semantic.scorer={cfg.semantic.scorer}: "
-                         f"{e}") from e
-  info = {"scene": os.path.abspath(scene_path), "embedded_scene": embedded,
-          "downscale": cfg.data.downscale,
-          "train_split": cfg.data.train_split, **(run_info or {})}
-  with cli.output_dir(workdir, keep=train.CHECKPOINT_NAME):
-    return run_lib.train_and_evaluate(
-        cfg, scene, workdir, scorer=scorer, lpips_net=cfg.eval.lpips_net,
-        resume=resume, run_info=info)
 
 
 def _finished(workdir: str, steps: int) -> dict | None:
@@ -152,8 +63,9 @@ def run_row(cfg: config_lib.Config, workdir: str, *,
                  cfg.train.steps)
     return metrics, None
   try:
-    return train_one(cfg, workdir, resume=True, clip_weights=clip_weights,
-                     run_info=run_info), None
+    return run_lib.train_and_evaluate(
+        cfg, workdir, resume=True, clip_weights=clip_weights,
+        run_info=run_info), None
   except cli.USER_ERRORS as e:
     line = cli.error_line(e)
     logging.error("row %s failed: %s", workdir, line)
@@ -177,7 +89,7 @@ def row_config(cd: ml_collections.ConfigDict, row: str,
   del values["sweep"]
   values = _merge(_merge(values, rows[row].to_dict()), overrides)
   values["data"] = dict(values["data"], scene=scene)
-  return build(values)
+  return config_lib.check(values)
 
 
 def _settings(cfg: config_lib.Config, clip_weights: str | None,
@@ -225,13 +137,20 @@ def _demo_outputs(workdir: str, cfgs: dict, metrics: dict,
   return summary
 
 
-def run_sweep(cd: ml_collections.ConfigDict, workdir: str, *,
+def run(cd: ml_collections.ConfigDict, workdir: str, *,
               clip_weights: str | None = None,
               run_info: dict[str, Any] | None = None) -> dict:
   """Every row of the sweep in cd.sweep, then its table or comparison.
 
-  Every row's config is built and checked before the first row runs.
+  Every row's config is built and checked (config.check) before the first
+  row runs; each row is one run.train_and_evaluate.
 
+  Args:
+    cd: the ConfigDict of a config file with a `sweep` section (with
+      command-line overrides; --scene sets sweep.benchmarks).
+    workdir: str, the root of the rows' folders.
+    clip_weights: str or None, CLIP weights for clip rows.
+    run_info: extra run.json fields (the config file, argv).
   Returns:
     {"rows": [...]} as in table.json (demo: comparison.json's dict).
   Raises:
@@ -312,34 +231,3 @@ def _taus(text) -> list[float]:
 
 _COLLECT = {"table": table.write_table, "ablate": table.write_ablation,
             "tau_sweep": tau_sweep.write_sweep}
-
-
-def run(cd: ml_collections.ConfigDict, workdir: str, *,
-        scene: str | None = None, resume: bool = False,
-        clip_weights: str | None = None,
-        run_info: dict[str, Any] | None = None) -> dict:
-  """Runs the config file's one run or sweep into `workdir`.
-
-  Args:
-    cd: the ConfigDict (configs/*.py with command-line overrides).
-    workdir: str, the run folder (a sweep: the root of its rows).
-    scene: str or None, the scene folder (data.scene); a sweep: its
-      benchmarks, comma-separated (sweep.benchmarks).
-    resume: one run: continue from the folder's checkpoint (sweep rows
-      always resume).
-    clip_weights: str or None, CLIP weights for clip scorers.
-    run_info: extra run.json fields (the config file, argv).
-  Returns:
-    One run: its metrics.json dict; a sweep: see `run_sweep`.
-  """
-  cd = ml_collections.ConfigDict(cd.to_dict())
-  if "sweep" in cd:
-    if scene is not None:
-      cd.sweep.benchmarks = scene
-    return run_sweep(cd, workdir, clip_weights=clip_weights,
-                     run_info=run_info)
-  if scene is not None:
-    cd.data.scene = scene
-  cfg = build(cd)
-  return train_one(cfg, workdir, resume=resume, clip_weights=clip_weights,
-                   run_info=run_info)

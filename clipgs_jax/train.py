@@ -292,7 +292,8 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
   checkpoint at step N after it.
 
   Args:
-    cfg: the config; scene-dependent fields are resolved from `scene`.
+    cfg: the checked config (config.check), resolved for `scene`
+      (`resolve`).
     scene: a data.scene.Scene (train/test Views, points, extent).
     workdir: where the checkpoint goes (created if missing).
     scorer: guidance.make_scorer(cfg.semantic, scene, ...); None exactly
@@ -303,8 +304,6 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
     stop_after: stop once this many steps are done, with a checkpoint, as
       a preemption would (a later resume=True call finishes the run).
   """
-  cfg = resolve(cfg, scene)
-  guidance.validate(cfg.semantic)
   guidance.check_scorer(cfg.semantic, scorer, "train.fit")
   os.makedirs(workdir, exist_ok=True)
   ckpt_path = os.path.join(workdir, CHECKPOINT_NAME)

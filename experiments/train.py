@@ -8,12 +8,13 @@
 scene at default_scene.TRAIN_STEPS steps without --scene) is an
 ml_collections config file; every field is overridable as
 --config.SECTION.FIELD=VALUE (see clipgs_jax/config.py for the fields).
-configs/smoke.py is a tiny CI run, configs/benchmark.py one benchmark run;
-configs/table.py, ablate.py, tau_sweep.py and demo.py are sweeps (rows x
-benchmarks; --scene=BENCH[,BENCH...]) whose rows go to DIR/<bench>/<row>/
-and whose table goes to DIR (clipgs_jax/sweep.py). One run writes its
-folder as clipgs_jax/run.py describes (config.json, metrics.json,
-curve.json, checkpoint.npz, renders/, ...).
+configs/smoke.py is a tiny CI run, configs/benchmark.py one benchmark run:
+one run is run.train_and_evaluate, which writes its folder as
+clipgs_jax/run.py describes (config.json, metrics.json, curve.json,
+checkpoint.npz, renders/, ...). configs/table.py, ablate.py, tau_sweep.py
+and demo.py have a `sweep` section (rows x benchmarks;
+--scene=BENCH[,BENCH...]): clipgs_jax/lab/sweep.py runs their rows into
+DIR/<bench>/<row>/ and writes their table into DIR.
 """
 
 import json
@@ -21,9 +22,12 @@ import os
 import sys
 
 from absl import flags
+import ml_collections
 from ml_collections import config_flags
 
 from clipgs_jax import cli
+from clipgs_jax import config as config_lib
+from clipgs_jax import run
 from clipgs_jax import sweep
 
 # Next to this script, so that a non-editable install finds it too.
@@ -50,13 +54,21 @@ flags.mark_flag_as_required("workdir")
 
 def main(argv):
   cli.no_arguments(argv)
-  out = sweep.run(_CONFIG.value, _WORKDIR.value, scene=_SCENE.value,
-                  resume=_RESUME.value, clip_weights=_CLIP_WEIGHTS.value,
-                  run_info={"config": config_flags.get_config_filename(
-                      flags.FLAGS["config"]), "argv": sys.argv})
-  if "test" not in out:                 # a sweep: its table or comparison
-    print(json.dumps(out, indent=1))
+  cd = ml_collections.ConfigDict(_CONFIG.value.to_dict())   # unlocked
+  run_info = {"config": config_flags.get_config_filename(
+      flags.FLAGS["config"]), "argv": sys.argv}
+  if "sweep" in cd:                  # rows x benchmarks, then their table
+    if _SCENE.value is not None:
+      cd.sweep.benchmarks = _SCENE.value
+    print(json.dumps(sweep.run(cd, _WORKDIR.value,
+                               clip_weights=_CLIP_WEIGHTS.value,
+                               run_info=run_info), indent=1))
     return
+  if _SCENE.value is not None:
+    cd.data.scene = _SCENE.value
+  out = run.train_and_evaluate(
+      config_lib.check(cd), _WORKDIR.value, resume=_RESUME.value,
+      clip_weights=_CLIP_WEIGHTS.value, run_info=run_info)
   print(json.dumps({k: out[k] for k in ("train_seconds", "steps",
                                         "num_gaussians")}
                    | {f"test.{k}": out["test"][k]

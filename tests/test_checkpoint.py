@@ -120,13 +120,14 @@ class ResumeTest(absltest.TestCase):
 
   def test_resume_is_bit_identical(self):
     scene = synthetic_scene()
+    cfg = train.resolve(TEST_CFG, scene)
     straight_dir = self.create_tempdir().full_path
     resumed_dir = self.create_tempdir().full_path
-    straight = train.fit(TEST_CFG, scene, straight_dir, progress=False)
-    half = train.fit(TEST_CFG, scene, resumed_dir, progress=False,
+    straight = train.fit(cfg, scene, straight_dir, progress=False)
+    half = train.fit(cfg, scene, resumed_dir, progress=False,
                      stop_after=50)
     self.assertEqual(int(half.state.step), 50)
-    resumed = train.fit(TEST_CFG, scene, resumed_dir, progress=False,
+    resumed = train.fit(cfg, scene, resumed_dir, progress=False,
                         resume=True)
     self.assertEqual(int(resumed.state.step), TEST_CFG.train.steps)
     _assert_states_equal(resumed.state, straight.state)
@@ -138,7 +139,7 @@ class ResumeTest(absltest.TestCase):
                                     straight.state.params.means))
     # A different config cannot resume this run.
     other = dataclasses.replace(
-        TEST_CFG, train=dataclasses.replace(TEST_CFG.train, seed=1))
+        cfg, train=dataclasses.replace(cfg.train, seed=1))
     with self.assertRaisesRegex(ValueError, "different config"):
       train.fit(other, scene, resumed_dir, progress=False, resume=True)
 

@@ -51,7 +51,8 @@ class PixelOracleEndToEndTest(absltest.TestCase):
         train=config.TrainConfig(steps=STEPS, eval_every=0,
                                  checkpoint_every=0, log_every=100),
         semantic=sem)
-    result = train.fit(cfg, scene, self.create_tempdir().full_path,
+    result = train.fit(train.resolve(cfg, scene), scene,
+                       self.create_tempdir().full_path,
                        scorer=guidance.make_scorer(sem, scene),
                        progress=False)
     # Rows 0..P-1 are the sparse points, in order (initialize.initialize).

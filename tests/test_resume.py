@@ -48,14 +48,15 @@ def _config():
 class KillAndResumeTest(absltest.TestCase):
 
   def test_resume_after_growth_and_prune_is_bit_identical(self):
-    scene, cfg = _scene(), _config()
+    scene = _scene()
+    cfg = train.resolve(_config(), scene)
     scorer = guidance.make_scorer(cfg.semantic, scene)
     fit = lambda workdir, **kw: train.fit(cfg, scene, workdir, scorer=scorer,
                                           progress=False, **kw)
     straight = fit(self.create_tempdir().full_path)
     workdir = self.create_tempdir().full_path
     killed = fit(workdir, stop_after=KILL_AT)
-    initial = train.initial_state(train.resolve(cfg, scene), scene).capacity
+    initial = train.initial_state(cfg, scene).capacity
     # The kill comes after a capacity growth and two semantic prunes.
     self.assertEqual(int(killed.state.step), KILL_AT)
     self.assertGreater(killed.state.capacity, initial)

@@ -8,6 +8,7 @@ from unittest import mock
 from absl.testing import absltest
 
 from clipgs_jax import config
+from clipgs_jax import run as run_lib
 from clipgs_jax import sweep
 from clipgs_jax import table
 from clipgs_jax.data import default_scene
@@ -156,9 +157,9 @@ class EndToEndTest(absltest.TestCase):
     self.assertLen([l for l in text.splitlines()
                     if l.startswith(f"| {os.path.basename(scene)} |")], 3)
     # Again: every row is finished, nothing trains.
-    with mock.patch.object(sweep, "train_one") as train_one:
+    with mock.patch.object(run_lib, "train_and_evaluate") as train:
       again = sweep.run(self._cd(scene), root)
-    train_one.assert_not_called()
+    train.assert_not_called()
     self.assertEqual([r["psnr"] for r in again["rows"]],
                      [r["psnr"] for r in rows])
 

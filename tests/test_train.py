@@ -187,7 +187,8 @@ class EndToEndTest(absltest.TestCase):
     scene = synthetic_scene()
     workdir = self.create_tempdir().full_path
     with CompileCounter() as compiles:
-      result = train.fit(TEST_CFG, scene, workdir, progress=False)
+      result = train.fit(train.resolve(TEST_CFG, scene), scene, workdir,
+                         progress=False)
     curve = result.curve
     self.assertEqual([p["step"] for p in curve], [0, 40, 80, 120])
     self.assertGreater(curve[-1]["test_psnr"], curve[0]["test_psnr"] + 3.0)

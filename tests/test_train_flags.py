@@ -1,5 +1,6 @@
 """configs/*.py and their overrides build the frozen Config, or one error."""
 
+import dataclasses
 import os
 import pathlib
 import subprocess
@@ -10,10 +11,10 @@ from absl.testing import absltest
 from absl.testing import parameterized
 
 from clipgs_jax import config
-from clipgs_jax import sweep
 from clipgs_jax.data import default_scene
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
+ORACLE = config.SemanticConfig(scorer="oracle")
 
 
 def _cd(name: str):
@@ -23,14 +24,14 @@ def _cd(name: str):
 class ConfigFilesTest(absltest.TestCase):
 
   def test_default_is_the_paper_config(self):
-    cfg = sweep.build(_cd("default"))
+    cfg = config.check(_cd("default"))
     # The embedded scene's steps, and 20 curve points of them.
     steps = default_scene.TRAIN_STEPS
     self.assertEqual(cfg.train.steps, steps)
     self.assertEqual(cfg.train.eval_every, steps // 20)
     cd = _cd("default")
     cd.data.scene = str(ROOT)           # any folder: a scene of one's own
-    self.assertEqual(sweep.build(cd).train.steps,
+    self.assertEqual(config.check(cd).train.steps,
                      config.TrainConfig().steps)
     # Apart from the steps and the curve, every field is Config()'s.
     paper = config.Config()
@@ -42,7 +43,7 @@ class ConfigFilesTest(absltest.TestCase):
     pack = self.create_tempfile("scene.npz").full_path
     cd = _cd("default")
     cd.data.scene = pack
-    self.assertEqual(sweep.build(cd).data.scene, pack)
+    self.assertEqual(config.check(cd).data.scene, pack)
 
   def test_smoke_is_the_old_preset(self):
     cfg = config.named("smoke")
@@ -106,8 +107,59 @@ class BadValuesTest(parameterized.TestCase):
     for section, values in overrides.items():
       cd[section].update(values)
     with self.assertRaises((app.UsageError, FileNotFoundError)) as e:
-      sweep.build(cd)
+      config.check(cd)
     self.assertIn(message, str(e.exception))
+
+
+class SemanticCheckTest(parameterized.TestCase):
+  """config.check names the semantic field that cannot run."""
+
+  def _check(self, sem: config.SemanticConfig) -> config.Config:
+    return config.check({"semantic": dataclasses.asdict(sem)})
+
+  @parameterized.parameters(
+      ("scorer", "bogus", "scorer="), ("tau", 1.5, "tau="),
+      ("tau", -0.1, "tau="), ("beta", 0.0, "beta="),
+      ("score_every", 0, "score_every="), ("prune_every", 0, "prune_every="),
+      ("reset_quiet", -1, "reset_quiet="),
+      ("oracle_saturation", 0.0, "oracle_saturation="),
+      ("distractor_prompts", ("a photo of a person", " "), "prompt is empty"),
+      ("evidence", "patch", "evidence="), ("tau_p", 1.5, "tau_p="),
+      ("max_prune_fraction", 0.0, "max_prune_fraction="),
+      ("loss_masking", True, "loss_masking needs evidence='pixel'"),
+      ("dense_input_size", 0, "dense_input_size="))
+  def test_names_the_field(self, field, value, message):
+    sem = dataclasses.replace(ORACLE, **{field: value})
+    with self.assertRaisesRegex(app.UsageError, message):
+      self._check(sem)
+
+  def test_clip_without_prompts_is_an_error(self):
+    # Silently training vanilla 3DGS instead (exit 0) would hide the
+    # mistake.
+    with self.assertRaisesRegex(app.UsageError, "no distractor prompts"):
+      self._check(config.SemanticConfig(scorer="clip",
+                                        distractor_prompts=()))
+    with self.assertRaisesRegex(app.UsageError, "needs static prompts"):
+      self._check(config.SemanticConfig(
+          scorer="clip", evidence="pixel", static_prompts=()))
+
+  def test_uniform_needs_pixel_evidence(self):
+    with self.assertRaisesRegex(app.UsageError, "needs evidence='pixel'"):
+      self._check(config.SemanticConfig(scorer="uniform"))
+
+  def test_loss_masking_alone_is_valid(self):
+    # Robust-3DGS-style masking without the opacity loss or pruning is a
+    # run of its own (BUILD_NOTES.md, "Localized evidence"); without
+    # masking it is not.
+    alone = dataclasses.replace(ORACLE, evidence="pixel", lambda_c=0.0,
+                                prune=False, loss_masking=True)
+    self.assertEqual(self._check(alone).semantic, alone)
+    with self.assertRaisesRegex(app.UsageError, "leaves guidance nothing"):
+      self._check(dataclasses.replace(alone, loss_masking=False))
+
+  def test_tau_edges_are_valid(self):
+    self._check(dataclasses.replace(ORACLE, tau=0.0))
+    self._check(dataclasses.replace(ORACLE, tau=1.0))
 
 
 class ScriptTest(absltest.TestCase):
