@@ -26,11 +26,9 @@ import os
 from ml_collections import config_dict
 
 from clipgs_jax import config as config_lib
+from clipgs_jax.lab import table
 
 RESET_QUIET = 500  # 1/6 of the 3,000-step reset cadence
-
-ROWS = ("vanilla", "oracle", "oracle_pixel", "oracle_pixel_masked", "clip",
-        "clip_pixel", "clean")
 
 
 def get_config():
@@ -38,13 +36,14 @@ def get_config():
                                          "benchmark.py"))
   off = {"scorer": "off"}
   # The localized rows hold the opacity loss and eq. 13 for 500 steps
-  # after each opacity reset (semantic.reset_quiet; BUILD_NOTES session
-  # 15); the paper's image-level row keeps the paper's schedule.
+  # after each opacity reset (semantic.reset_quiet; BUILD_NOTES.md,
+  # "Localized evidence"); the paper's image-level row keeps the paper's
+  # schedule.
   pixel = {"evidence": "pixel", "reset_quiet": RESET_QUIET}
   cd.sweep = config_dict.ConfigDict({
       "kind": "table",
       "benchmarks": "",          # comma-separated folders; --scene sets it
-      "rows": ",".join(ROWS),    # the rows to run, in table order
+      "rows": ",".join(table.ROWS),  # the rows to run, in table order
       "out": "",                 # table.md / .json folder; "": --workdir
       "row_overrides": {
           "vanilla": {"data": {"train_split": "clutter"}, "semantic": off},

@@ -2,7 +2,8 @@
 
   python experiments/bench.py --bench=rasterizer [--num_gaussians=10000
       --sizes=256x256]
-  python experiments/bench.py --bench=step --num_gaussians=0,220000
+  python experiments/bench.py --bench=step --bench_scene=DIR
+      [--num_gaussians=0,220000]
   python experiments/bench.py --bench=clip --clip_variant=ViT-B/32
       --batch_sizes=1,8 [--noencoders --scorers --dense_input_sizes=224,448]
   python experiments/bench.py --bench=semantic [--timed_steps=40
@@ -16,18 +17,18 @@ step: one training step on a real view, stage by stage, at each Gaussian
 clip: the CLIP encoders, preprocessing, tokenizer and text cache, and
   (--scorers) the view scorers, on random weights.
 semantic: step-time overhead of guidance over the vanilla step.
-The library functions (clipgs_jax/benchmark.py, clipgs_jax/clip/
-benchmark.py) document every field.
+The lab's functions (clipgs_jax/lab/timing.py, clipgs_jax/lab/
+clip_timing.py) document every field.
 """
 
 import json
 
 from absl import flags
 
-from clipgs_jax import benchmark
+from clipgs_jax.lab import timing
 from clipgs_jax import cli
 from clipgs_jax import config as config_lib
-from clipgs_jax.clip import benchmark as clip_benchmark
+from clipgs_jax.lab import clip_timing
 from clipgs_jax.clip import dense
 from clipgs_jax.clip import model
 from clipgs_jax.clip import scorer
@@ -37,10 +38,10 @@ from clipgs_jax.data import default_scene
 DEFAULTS = {
     "rasterizer": dict(num_gaussians=["1000", "10000", "100000"],
                        repeats=5, tile_budget=0),
-    # 220k: about where a bird ds4 7k-step run ends (BUILD_NOTES: 223k at
-    # 5950).
+    # 220k: about where a bird ds4 7k-step run ends (BUILD_NOTES.md,
+    # "Long runs": 223k at 5950).
     "step": dict(num_gaussians=["0", "220000"], repeats=3, tile_budget=8192,
-                 bench_scene="../shared/data/bird", bench_downscale=4),
+                 bench_downscale=4),
     "clip": dict(repeats=10),
     "semantic": dict(tile_budget=8192, bench_downscale=1),
 }
@@ -66,8 +67,9 @@ _RADIUS = flags.DEFINE_list("radius_px", ["2", "20"], "rasterizer: range "
 _MAX_GIB = flags.DEFINE_float(
     "max_gib", 12.0, "rasterizer: skip a variant whose compiled forward + "
     "backward needs more memory than this (GiB).")
-_SCENE = flags.DEFINE_string("bench_scene", None, "step / semantic: scene "
-                             "folder (default: bird / the embedded scene).")
+_SCENE = flags.DEFINE_string(
+    "bench_scene", None, "step / semantic: scene folder or pack (step: "
+    "required, e.g. the bird scene; semantic: default the embedded scene).")
 _DOWNSCALE = flags.DEFINE_integer("bench_downscale", None, "step / semantic: "
                                   "image downscale (default 4 / 1).")
 _VIEW = flags.DEFINE_integer("view", 0, "step: training view index.")
@@ -142,15 +144,19 @@ def _results():
       width, height = (int(s) for s in size.split("x"))
       for n in _ints(_value("num_gaussians", _NUM)):
         for variant in _VARIANTS.value:
-          yield benchmark.rasterizer(
+          yield timing.rasterizer(
               n, width, height, variant,
               radius_px=tuple(float(r) for r in _RADIUS.value),
               tile_budget=budget, chunk_size=_CHUNK.value,
               lanes=_LANES.value, tile_size=_TILE_SIZE.value,
               repeats=repeats, max_gib=_MAX_GIB.value)
   elif what == "step":
-    yield from benchmark.train_step(
-        _value("bench_scene", _SCENE), _value("bench_downscale", _DOWNSCALE),
+    cli.require(_SCENE.value is not None, "bench_scene", _SCENE.value,
+                "is missing: --bench=step times a real view; pass a scene "
+                "folder or pack, e.g. --bench_scene=DATA/bird")
+    cli.require_file("bench_scene", _SCENE.value)
+    yield from timing.train_step(
+        _SCENE.value, _value("bench_downscale", _DOWNSCALE),
         _ints(_value("num_gaussians", _NUM)), view=_VIEW.value,
         checkpoint_path=_CHECKPOINT.value, repeats=repeats,
         render=config_lib.RenderConfig(
@@ -159,16 +165,16 @@ def _results():
   elif what == "clip":
     render_hw = tuple(_ints(_RENDER_SIZE.value))
     if _SCORERS.value:
-      yield from clip_benchmark.scorers(
+      yield from clip_timing.scorers(
           _CLIP_VARIANT.value, render_hw, runs=repeats, warmup=_WARMUP.value,
           dense_input_sizes=_ints(_DENSE_SIZES.value),
           dense_readouts=_DENSE_READOUTS.value)
     if _ENCODERS.value:
-      yield from clip_benchmark.encoders(
+      yield from clip_timing.encoders(
           _CLIP_VARIANT.value, render_hw, runs=repeats, warmup=_WARMUP.value,
           batch_sizes=_ints(_BATCH_SIZES.value))
   else:
-    yield from benchmark.semantic_overhead(
+    yield from timing.semantic_overhead(
         _SCENE.value or default_scene.ensure_default_scene(),
         _value("bench_downscale", _DOWNSCALE),
         score_every=_ints(_SCORE_EVERY.value), steps=_TIMED_STEPS.value,

@@ -22,11 +22,11 @@ masks: the alpha of the alive Gaussians with s_j > tau (tau: the run's
 evidence: on a persistent benchmark, the ground-truth pixel evidence s_j
   of the Gaussians on billboards (ghosts, by geometry) against the rest,
   raw and agreement-weighted: DIR/evidence.json and DIR/evidence.png
-  (clipgs_jax/evidence.py).
+  (clipgs_jax/lab/ghost_evidence.py).
 curve: test MSE (log) against training time of each run's curve.json (a
   run folder or the curve.json itself).
 figures: per benchmark, a render grid and error curves of the table's
-  runs in TABLE_ROOT/<benchmark name>/<row>/ (clipgs_jax/figures.py).
+  runs in TABLE_ROOT/<benchmark name>/<row>/ (clipgs_jax/lab/figures.py).
 """
 
 import os
@@ -35,10 +35,10 @@ from absl import flags
 
 from clipgs_jax import cli
 from clipgs_jax import evaluation
-from clipgs_jax import evidence
-from clipgs_jax import figures
+from clipgs_jax.lab import ghost_evidence
+from clipgs_jax.lab import figures
 from clipgs_jax import plots
-from clipgs_jax import report
+from clipgs_jax.lab import report
 from clipgs_jax import run as run_lib
 
 _REPORT = flags.DEFINE_enum(
@@ -110,7 +110,7 @@ def _fraction(x) -> str:
 
 
 def _evidence() -> None:
-  out = evidence.evidence_report(_one_run())
+  out = ghost_evidence.evidence_report(_one_run())
   print(f"{out['num_ghost']:,} of {out['num_alive']:,} alive Gaussians lie "
         f"on a billboard; over {out['num_views']} training views they carry "
         f"{_fraction(out['ghost_weight_share'])} of all blending weight and "
@@ -130,8 +130,8 @@ def _evidence() -> None:
           f"of {g['num']:,} ghosts, {o['above_tau']:,} of {o['num']:,} others"
           f" (precision {_fraction(b['precision'])}, recall "
           f"{_fraction(b['recall'])})")
-  print(f"wrote {evidence.EVIDENCE_JSON} and {evidence.EVIDENCE_PNG} in "
-        f"{out['workdir']}")
+  print(f"wrote {ghost_evidence.EVIDENCE_JSON} and "
+        f"{ghost_evidence.EVIDENCE_PNG} in {out['workdir']}")
 
 
 def main(argv):

@@ -28,7 +28,7 @@ from ml_collections import config_flags
 from clipgs_jax import cli
 from clipgs_jax import config as config_lib
 from clipgs_jax import run
-from clipgs_jax import sweep
+from clipgs_jax.lab import sweep
 
 # Next to this script, so that a non-editable install finds it too.
 DEFAULT_CONFIG = os.path.join(os.path.dirname(os.path.dirname(

@@ -373,7 +373,8 @@ def test_pack_trains_without_pycolmap(tmp_path):
   code = f"""
 import sys
 sys.modules["pycolmap"] = None           # import pycolmap raises ImportError
-from clipgs_jax import run, sweep
+from clipgs_jax import run
+from clipgs_jax.lab import sweep
 from clipgs_jax.data import scene
 s = scene.load_scene({out!r}, downscale=2)
 print(s.train.images.shape, int(s.train.masks.sum()))

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from absl.testing import absltest
 
-from clipgs_jax import benchmark
+from clipgs_jax.lab import timing
 from clipgs_jax import camera
 from clipgs_jax import config
 from clipgs_jax import densify
@@ -229,8 +229,8 @@ class EndToEndTest(absltest.TestCase):
     state = train.initial_state(cfg, scene)
     batch = train.make_batch(scene.train)
     means = np.asarray(state.params.means)
-    out = benchmark.step_stages(cfg, batch, state.params, state.alive,
-                                view=0, repeats=1)
+    out = timing.step_stages(cfg, batch, state.params, state.alive,
+                             view=0, repeats=1)
     self.assertGreater(out["train_step"]["wall_ms"], 0)
     self.assertEqual(out["n"], int(np.sum(np.asarray(state.alive))))
     np.testing.assert_array_equal(np.asarray(state.params.means), means)

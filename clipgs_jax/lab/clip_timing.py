@@ -7,7 +7,7 @@ from typing import Iterator
 import jax
 import jax.numpy as jnp
 
-from clipgs_jax import benchmark
+from clipgs_jax.lab import timing
 from clipgs_jax import config as config_lib
 from clipgs_jax.clip import model
 from clipgs_jax.clip import preprocess
@@ -25,7 +25,7 @@ WEIGHTS_SEED = 0   # random weights: the timings do not depend on them
 
 def _ms(fn, runs: int, warmup: int) -> dict:
   """first_call_ms, median_ms, min_ms and median_cpu_ms of fn()."""
-  t = benchmark.time_calls(fn, repeats=runs, warmup=warmup)
+  t = timing.time_calls(fn, repeats=runs, warmup=warmup)
   return dict(first_call_ms=round(t.first_s * 1e3, 1),
               median_ms=round(statistics.median(t.wall_s) * 1e3, 2),
               min_ms=round(min(t.wall_s) * 1e3, 2),
@@ -115,7 +115,7 @@ def encoders(variant: str, render_hw: tuple[int, int], *, runs: int,
     start = time.perf_counter()
     jax.block_until_ready(cache(PAPER_PROMPTS))
     misses.append((time.perf_counter() - start) * 1e3)
-  hit = statistics.median(benchmark.time_calls(
+  hit = statistics.median(timing.time_calls(
       lambda: cache(PAPER_PROMPTS), repeats=runs).wall_s) * 1e3
   yield dict(what='text_cache', prompts=len(PAPER_PROMPTS),
              first_miss_ms=round(misses[0], 1),

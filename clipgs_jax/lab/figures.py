@@ -11,19 +11,9 @@ from clipgs_jax import camera
 from clipgs_jax import plots
 from clipgs_jax import run as run_lib
 from clipgs_jax.data import images
+from clipgs_jax.lab import table
 from clipgs_jax.data import scene as scene_lib
 
-ROWS = ("vanilla", "oracle", "oracle_pixel", "oracle_pixel_masked", "clip",
-        "clip_pixel", "clean")
-LABELS = {
-    "vanilla": "vanilla 3DGS",
-    "oracle": "CLIP-GS (ORACLE scorer)",
-    "oracle_pixel": "localized (ORACLE-PIXEL)",
-    "oracle_pixel_masked": "localized + loss masking (ORACLE-PIXEL)",
-    "clip": "CLIP-GS (CLIP)",
-    "clip_pixel": "localized (dense CLIP)",
-    "clean": "clean upper bound",
-}
 INPUT_TITLE = "input (nearest training view, with transients)"
 PANEL_INCHES = 2.4
 
@@ -62,13 +52,13 @@ def pick_views(num_views: int, count: int) -> list[int]:
 
 
 def present_rows(scene_runs: str) -> list[str]:
-  """The rows of ROWS with a folder in scene_runs; ValueError when none."""
-  rows = [r for r in ROWS if os.path.isdir(os.path.join(scene_runs, r))]
+  """The table.ROWS with a folder in scene_runs; ValueError when none."""
+  rows = [r for r in table.ROWS if os.path.isdir(os.path.join(scene_runs, r))]
   if not rows:
-    raise ValueError(f"figures: no row folder ({', '.join(ROWS)}) in "
+    raise ValueError(f"figures: no row folder ({', '.join(table.ROWS)}) in "
                      f"{scene_runs}; run the table first or fix "
                      "--runs.")
-  for r in ROWS:
+  for r in table.ROWS:
     if r not in rows and r != "clip":
       logging.warning("figures: %s is missing; no %s column or curve.",
                       os.path.join(scene_runs, r), r)
@@ -146,7 +136,7 @@ def make_grid(bench: str, scene_runs: str, out_path: str, views: int = 3,
             "--figure_downscale.")
       renders[r][i] = image
   cols = [r for r in rows if renders[r] is not None]
-  titles = [INPUT_TITLE] + [LABELS[r] for r in cols] + ["ground truth"]
+  titles = [INPUT_TITLE] + [table.LABELS[r] for r in cols] + ["ground truth"]
   test_centres = camera.camera_center(test.cameras)   # [V, 3]
   h, w = test.images.shape[1:3]
   fig = figure.Figure(dpi=150, figsize=(
@@ -161,7 +151,7 @@ def make_grid(bench: str, scene_runs: str, out_path: str, views: int = 3,
     view = {"test": test.names[i], "input": train.names[j], "psnr": {}}
     for c, r in enumerate(cols, 1):
       view["psnr"][r] = view_psnr(renders[r][i], gt)
-      _panel(axes[k, c], renders[r][i], head(LABELS[r]).rstrip(),
+      _panel(axes[k, c], renders[r][i], head(table.LABELS[r]).rstrip(),
              f"PSNR {view['psnr'][r]:.2f} dB")
     _panel(axes[k, -1], gt, head("ground truth") + test.names[i])
     summary["views"].append(view)
@@ -189,7 +179,7 @@ def make_curve(scene_runs: str, out_path: str) -> list[str]:
     logging.warning("figures: no curve.json in %s; no curve plot.",
                     scene_runs)
     return []
-  plots.plot(paths, out_path, [LABELS[r] for r in rows])
+  plots.plot(paths, out_path, [table.LABELS[r] for r in rows])
   logging.info("figures: wrote %s", out_path)
   return rows
 

@@ -8,9 +8,9 @@ import numpy as np
 
 from clipgs_jax import config
 from clipgs_jax import run as run_lib
-from clipgs_jax import sweep
-from clipgs_jax import table
-from clipgs_jax import tau_sweep
+from clipgs_jax.lab import sweep
+from clipgs_jax.lab import table
+from clipgs_jax.lab import tau_sweep
 
 
 def _metrics(psnr, *, alive=700, by_score=200, by_rule=100):

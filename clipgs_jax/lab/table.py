@@ -1,4 +1,9 @@
-"""Benchmark and ablation tables from finished runs' metrics.json dicts."""
+"""Benchmark and ablation tables from finished runs' metrics.json dicts.
+
+Also what every sweep output shares (sweep.py, tau_sweep.py, figures.py):
+the table's row names (ROWS, LABELS, VANILLA, CLEAN), RowResult,
+collect_row, by_scene, test_psnr, fmt, write_outputs and machine_and_date.
+"""
 
 import datetime
 import math
@@ -6,12 +11,24 @@ import os
 import platform
 from typing import NamedTuple
 
-from clipgs_jax import fileio
 from clipgs_jax import config as config_lib
+from clipgs_jax import fileio
 from clipgs_jax import run as run_lib
 
 # Rows that the others are measured against (by name, in every sweep).
 VANILLA, CLEAN = "vanilla", "clean"
+# The benchmark table's rows in table order (configs/table.py says what each
+# runs), with the short names that figures give them.
+LABELS = {
+    VANILLA: "vanilla 3DGS",
+    "oracle": "CLIP-GS (ORACLE scorer)",
+    "oracle_pixel": "localized (ORACLE-PIXEL)",
+    "oracle_pixel_masked": "localized + loss masking (ORACLE-PIXEL)",
+    "clip": "CLIP-GS (CLIP)",
+    "clip_pixel": "localized (dense CLIP)",
+    CLEAN: "clean upper bound",
+}
+ROWS = tuple(LABELS)
 # Why an ablation row without CLIP weights did not run.
 NEEDS_CLIP = "needs --clip_weights (the oracle ignores prompts)"
 

@@ -9,8 +9,8 @@ from absl.testing import absltest
 
 from clipgs_jax import config
 from clipgs_jax import run as run_lib
-from clipgs_jax import sweep
-from clipgs_jax import table
+from clipgs_jax.lab import sweep
+from clipgs_jax.lab import table
 from clipgs_jax.data import default_scene
 
 

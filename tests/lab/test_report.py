@@ -17,13 +17,13 @@ from clipgs_jax import checkpoint
 from clipgs_jax import config as config_lib
 from clipgs_jax import evaluation
 from clipgs_jax import fileio
-from clipgs_jax import report
+from clipgs_jax.lab import report
 from clipgs_jax import run as run_lib
 from clipgs_jax import train
 from clipgs_jax.data import default_scene
 from clipgs_jax.data import scene as scene_lib
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 DOWNSCALE = 4      # the embedded scene's 128x96 views become 32x24
 HIGH, LOW = 0.02, 0.01   # s_j of the flagged / other Gaussians; tau 0.015
 

@@ -9,7 +9,7 @@ import numpy as np
 from clipgs_jax import config as config_lib
 from clipgs_jax import plots
 from clipgs_jax import run as run_lib
-from clipgs_jax import table
+from clipgs_jax.lab import table
 
 
 def otsu_threshold(histogram, edges) -> float | None:

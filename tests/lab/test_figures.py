@@ -7,7 +7,7 @@ from absl.testing import absltest
 import numpy as np
 
 from clipgs_jax import camera
-from clipgs_jax import figures
+from clipgs_jax.lab import figures
 from clipgs_jax.data import default_scene
 from clipgs_jax.data import images
 from clipgs_jax.data import scene as scene_lib

@@ -1,17 +1,17 @@
 """Where localized evidence fails: s_j of billboard ghosts against the rest.
 
-Issue 12's diagnostic for persistent benchmarks (a transients.json with
-billboards). Every training view of a finished run's final state is
-rendered with its ground-truth mask as the evidence map, as ORACLE-PIXEL
-scores it, and each Gaussian's share of blending weight on transient
-pixels is summed over the views under the two rules training knows: "raw"
-(sum_i w_ij m_i / sum_i w_ij) and "agreement" (the default; a transient
-pixel counts only as far as the render reproduces the photo there, see
-semantic.agreement). The labels come from geometry, not from any score: a
-ghost is a Gaussian whose mean lies on a billboard
+A diagnostic for persistent benchmarks (a transients.json with billboards),
+behind `experiments/report.py --report=evidence`. Every training view of a
+finished run's final state is rendered with its ground-truth mask as the
+evidence map, as ORACLE-PIXEL scores it, and each Gaussian's share of
+blending weight on transient pixels is summed over the views under the two
+rules training knows: "raw" (sum_i w_ij m_i / sum_i w_ij) and "agreement"
+(the default; a transient pixel counts only as far as the render reproduces
+the photo there, see semantic.agreement). The labels come from geometry, not
+from any score: a ghost is a Gaussian whose mean lies on a billboard
 (data.billboards.on_billboard). For each rule: histograms of s_j for ghost
-and other rows, their medians, and the precision and recall of the prune
-rule s_j > tau_p. A guided run's own accumulated s_j is summarised too.
+and other rows, their medians, and the precision and recall of the prune rule
+s_j > tau_p. A guided run's own accumulated s_j is summarised too.
 """
 
 import functools

@@ -21,8 +21,8 @@ from clipgs_jax import config as config_lib
 from clipgs_jax import fileio
 from clipgs_jax import plots
 from clipgs_jax import run as run_lib
-from clipgs_jax import table
-from clipgs_jax import tau_sweep
+from clipgs_jax.lab import table
+from clipgs_jax.lab import tau_sweep
 from clipgs_jax.data import images as images_lib
 from clipgs_jax.data import scene as scene_lib
 

@@ -1,7 +1,7 @@
 """Timings of the rasterizer, the train step and semantic guidance.
 
 Each benchmark returns JSON-ready dicts (experiments/bench.py prints one
-line each); BUILD_NOTES cites their fields. Wall and process-CPU times are
+line each); BUILD_NOTES.md cites their fields. Wall and process-CPU times are
 both reported: CPU time sums all threads and is not inflated by other
 processes on a shared machine.
 """
@@ -283,7 +283,8 @@ def step_stages(cfg: config_lib.Config, batch, params, alive, view: int,
         jnp.zeros(target.shape))
   # Adam and the train step donate their state as the training loop does;
   # without donation each call also faults in fresh output pages (Adam at
-  # 262k rows: 194 ms against 30 ms on the 2-core box, session 12).
+  # 262k rows: 194 ms against 30 ms on the 2-core box; BUILD_NOTES.md,
+  # "Training").
   tx = train.make_optimizer(cfg)
 
   def adam(carry, grads):

@@ -12,7 +12,7 @@ import pytest
 from clipgs_jax import camera as camera_lib
 from clipgs_jax import checkpoint
 from clipgs_jax import config as config_lib
-from clipgs_jax import evidence
+from clipgs_jax.lab import ghost_evidence
 from clipgs_jax import fileio
 from clipgs_jax import rasterize
 from clipgs_jax import train
@@ -43,7 +43,7 @@ def test_summarize_counts_by_hand():
   weight = np.array([2.0, 2.0, 0.5, 2.0, 2.0, 2.0])  # row 2: below the floor
   ghost = np.array([True, True, True, False, False, False])
   alive = np.array([True, True, True, True, True, False])
-  out = evidence.summarize(scores, weight, ghost, alive, tau=0.5, bins=2)
+  out = ghost_evidence.summarize(scores, weight, ghost, alive, tau=0.5, bins=2)
   assert out["edges"] == [0.0, 0.5, 1.0]
   assert out["ghost"] == {"num": 2, "counts": [1, 1], "median": 0.35,
                           "above_tau": 1}
@@ -51,16 +51,17 @@ def test_summarize_counts_by_hand():
                           "median": pytest.approx(0.55), "above_tau": 1}
   assert out["precision"] == 0.5 and out["recall"] == 0.5
   # Only the last row alive: one false positive, no ghost to recall.
-  last = evidence.summarize(scores, weight, ghost, ~alive, tau=0.5, bins=2)
+  last = ghost_evidence.summarize(scores, weight, ghost, ~alive, tau=0.5,
+                                  bins=2)
   assert last["precision"] == 0.0 and last["recall"] is None
   assert last["ghost"]["median"] is None
-  none = evidence.summarize(scores, weight, ghost, alive & False, 0.5, 2)
+  none = ghost_evidence.summarize(scores, weight, ghost, alive & False, 0.5, 2)
   assert none["precision"] is None and none["other"]["counts"] == [0, 0]
 
 
 def test_needs_billboards():
   with pytest.raises(ValueError, match="--mode=persistent"):
-    evidence.ghost_rows(np.zeros((1, 3)), {"mode": "independent"}, None)
+    ghost_evidence.ghost_rows(np.zeros((1, 3)), {"mode": "independent"}, None)
 
 
 @pytest.fixture(scope="module")
@@ -96,7 +97,7 @@ def saved_run(built, tmp_path_factory):  # pylint: disable=redefined-outer-name
 
 def test_ghost_rows_are_the_billboard_rows(saved_run):  # pylint: disable=redefined-outer-name
   _, scene, _, state, free, manifest = saved_run
-  ghost = evidence.ghost_rows(state.params.means, manifest, scene.train)
+  ghost = ghost_evidence.ghost_rows(state.params.means, manifest, scene.train)
   assert ghost[free].all()
   # The rest of the cloud (radius <= 0.87 about the origin) stands behind
   # every billboard.
@@ -105,7 +106,8 @@ def test_ghost_rows_are_the_billboard_rows(saved_run):  # pylint: disable=redefi
 
 def test_pixel_evidence_bounds_and_limits(saved_run):  # pylint: disable=redefined-outer-name
   _, scene, cfg, state, free, _ = saved_run
-  sums = evidence.pixel_evidence(state.params, state.alive, scene.train, cfg)
+  sums = ghost_evidence.pixel_evidence(state.params, state.alive,
+                                       scene.train, cfg)
   w, raw, rep = sums["weight"], sums["raw"], sums["reproduced"]
   assert (w > 0).sum() > NUM_GHOSTS
   assert np.all(raw <= w + 1e-4) and np.all(rep <= raw + 1e-4)
@@ -117,7 +119,7 @@ def test_pixel_evidence_bounds_and_limits(saved_run):  # pylint: disable=redefin
   # Every pixel masked: raw evidence is the whole weight.
   views = scene.train
   ones = dataclasses.replace(views, masks=np.ones_like(views.masks))
-  full = evidence.pixel_evidence(state.params, state.alive, ones, cfg)
+  full = ghost_evidence.pixel_evidence(state.params, state.alive, ones, cfg)
   np.testing.assert_allclose(full["raw"], full["weight"], rtol=1e-6,
                              atol=1e-6)
   h, w = views.masks.shape[1:]
@@ -130,7 +132,7 @@ def test_pixel_evidence_bounds_and_limits(saved_run):  # pylint: disable=redefin
   renders = np.stack([np.asarray(render(camera_lib.camera_at(cams, i)))
                       for i in range(len(views))])
   same = dataclasses.replace(views, images=renders)
-  agreed = evidence.pixel_evidence(state.params, state.alive, same, cfg)
+  agreed = ghost_evidence.pixel_evidence(state.params, state.alive, same, cfg)
   np.testing.assert_allclose(agreed["reproduced"], agreed["raw"],
                              rtol=1e-5, atol=1e-5)
   np.testing.assert_allclose(agreed["pixels"][[0, 2]],
@@ -140,10 +142,10 @@ def test_pixel_evidence_bounds_and_limits(saved_run):  # pylint: disable=redefin
 
 def test_report_writes_json_and_png(saved_run):  # pylint: disable=redefined-outer-name
   workdir, scene, _, _, _, _ = saved_run
-  out = evidence.evidence_report(str(workdir), bins=5)
-  with open(workdir / evidence.EVIDENCE_JSON) as f:
+  out = ghost_evidence.evidence_report(str(workdir), bins=5)
+  with open(workdir / ghost_evidence.EVIDENCE_JSON) as f:
     assert json.load(f) == json.loads(json.dumps(out))
-  assert os.path.getsize(workdir / evidence.EVIDENCE_PNG) > 0
+  assert os.path.getsize(workdir / ghost_evidence.EVIDENCE_PNG) > 0
   assert out["num_ghost"] == NUM_GHOSTS
   assert out["num_views"] == len(scene.train)
   assert 0 < out["ghost_weight_share"] < out["ghost_masked_share"] < 1

@@ -1,0 +1,1 @@
+"""Studies of finished runs: sweeps, tables, reports, figures, timings."""
