@@ -11,7 +11,7 @@ import pycolmap
 import pytest
 
 from clipgs_jax.data import colmap
-from clipgs_jax.data import distractors
+from clipgs_jax.data import transient_photos
 from clipgs_jax.data import images
 from clipgs_jax.data import scene as scene_lib
 from clipgs_jax.data import transients
@@ -271,7 +271,7 @@ def test_parse_per_view(text, want):
 
 @pytest.mark.parametrize("shape", ["ellipse", "rounded_rect"])
 def test_shape_alpha(shape):
-  alpha = distractors.shape_alpha(60, 40, shape)
+  alpha = transient_photos.shape_alpha(60, 40, shape)
   assert alpha.shape == (40, 60) and alpha.dtype == np.float32
   assert alpha[20, 30] == 1 and alpha[0, 0] == 0
   # Zero on the box border, symmetric, soft: some values strictly between.
@@ -328,7 +328,7 @@ def test_cli(source, tmp_path):
 
 @shared_data.needs_data("distractors")
 def test_real_distractors(source, tmp_path):
-  photos = distractors.list_photos(str(DATA / "distractors"))
+  photos = transient_photos.list_photos(str(DATA / "distractors"))
   by_name = {os.path.basename(p): c for p, c in photos}
   assert len(photos) == 8 and sorted(by_name.values()).count("person") == 5
   manifest = transients.build(source["scene"], str(DATA / "distractors"),

@@ -10,7 +10,7 @@ stay put for several shots) and vanilla 3DGS can fit it as a 3D ghost.
 
 import numpy as np
 
-from clipgs_jax.data import distractors
+from clipgs_jax.data import transient_photos
 
 # Depth of the billboard centre along the middle view's optical axis, as a
 # fraction of the near scene depth (NEAR_QUANTILE of the SfM points that
@@ -28,12 +28,13 @@ VISIBLE_MARGIN = 0.05
 # Every corner must be at least this fraction of the near depth in front
 # of every camera of the run (no billboard crosses a camera plane).
 MIN_CORNER_DEPTH = 0.05
-# Ghost labels (issue 12's evidence diagnostic; never used in training): a
-# point belongs to a billboard's ghost when it lies within GHOST_DEPTH times
-# the billboard's viewing distance (the mean distance from its cameras to
-# its centre) of its plane, and its foot on the plane falls inside the
-# rectangle grown by GHOST_MARGIN of each side. Vanilla 3DGS fits a
-# billboard from its k views only, so the ghost spreads along their rays.
+# Ghost labels (the diagnostic of lab/ghost_evidence.py; never used in
+# training): a point belongs to a billboard's ghost when it lies within
+# GHOST_DEPTH times the billboard's viewing distance (the mean distance
+# from its cameras to its centre) of its plane, and its foot on the plane
+# falls inside the rectangle grown by GHOST_MARGIN of each side. Vanilla
+# 3DGS fits a billboard from its k views only, so the ghost spreads along
+# their rays.
 # The billboard stands at 0.3-0.9 of the near scene depth (DEPTH_STAGES),
 # so the nearest content behind it is >= 0.11 viewing distances away
 # (0.9 -> 1.0 of the near depth) and most of it much further.
@@ -112,8 +113,8 @@ def place(rng: np.random.Generator, photo_size, rotations, translations,
           intrinsics, sizes, points) -> np.ndarray:
   """Random billboard seen by every camera of a run.
 
-  Its size in the middle view follows `distractors.paste_size` (15-45 % of
-  the height); its centre lies on the ray of a random pixel of the middle
+  Its size in the middle view follows `transient_photos.paste_size` (15-45 %
+  of the height); its centre lies on the ray of a random pixel of the middle
   view at a depth from DEPTH_STAGES (fractions of that view's near scene
   depth).
 
@@ -149,7 +150,7 @@ def _try_place(rng, photo_size, rotations, translations, intrinsics, sizes,
       intrinsics[mid])
   width, height = sizes[mid]
   for _ in range(tries):
-    w_pix, h_pix = distractors.paste_size(rng, photo_size, width, height)
+    w_pix, h_pix = transient_photos.paste_size(rng, photo_size, width, height)
     depth = rng.uniform(low, high) * near
     px = rng.uniform(CENTRE_MARGIN, 1 - CENTRE_MARGIN) * width
     py = rng.uniform(CENTRE_MARGIN, 1 - CENTRE_MARGIN) * height

@@ -4,7 +4,7 @@ Every 8th registered image by sorted name becomes a clean test view
 `images/1extraNNN.png`; the others become training views
 `images/2clutterNNN.png`, with clean twins `images/0cleanNNN.png` (same
 cameras, for the clean upper bound). Transients are real photos of people
-or clutter (`distractors.list_photos`) with soft-edged alphas, in one of
+or clutter (`transient_photos.list_photos`) with soft-edged alphas, in one of
 two modes:
 
 - "independent": each cluttered view gets 1-3 photos pasted at random 2D
@@ -35,13 +35,13 @@ import pycolmap
 
 from clipgs_jax.data import billboards
 from clipgs_jax.data import colmap
-from clipgs_jax.data import distractors
+from clipgs_jax.data import transient_photos
 from clipgs_jax.data import images
 from clipgs_jax.data import scene as scene_lib
 
 MODES = ("independent", "persistent")
 DEFAULT_PERSIST_VIEWS = 5   # views per billboard: RobustNeRF-like runs
-MASK_THRESHOLD = distractors.MASK_THRESHOLD
+MASK_THRESHOLD = transient_photos.MASK_THRESHOLD
 
 
 def parse_per_view(text: str) -> tuple[int, int]:
@@ -175,7 +175,8 @@ def make_billboards(model, train_idx, photos, seed, fraction, per_view, k):
     intr, sizes = model.intrinsics[cams], model.sizes[cams]
     for _ in range(int(rng.integers(per_view[0], per_view[1] + 1))):
       index = int(rng.integers(len(photos)))
-      shape = distractors.SHAPES[int(rng.integers(len(distractors.SHAPES)))]
+      shapes = transient_photos.SHAPES
+      shape = shapes[int(rng.integers(len(shapes)))]
       name, category, pixels = photos[index]
       corners = billboards.place(rng, pixels.shape[1::-1], rot, trans, intr,
                                  sizes, model.points)
@@ -185,7 +186,7 @@ def make_billboards(model, train_idx, photos, seed, fraction, per_view, k):
       out.append({"id": len(out), "run": r, "views": runs[r], "photo": name,
                   "category": category, "shape": shape, "corners": corners,
                   "rgb": images.resize_area(pixels, tw, th),
-                  "alpha": distractors.shape_alpha(tw, th, shape)})
+                  "alpha": transient_photos.shape_alpha(tw, th, shape)})
   return out
 
 
@@ -235,7 +236,7 @@ def _write_views(model, tmp, photos, seed, fraction, per_view, mode, k):
       image, mask, transients = _persistent_view(
           pixels, model, i, [b for b in boards if j in b["views"]])
     elif j in cluttered:
-      image, mask, transients = distractors.clutter_view(
+      image, mask, transients = transient_photos.clutter_view(
           pixels, photos, view_rng(seed, j), per_view)
     images.write_png(os.path.join(tmp, "images", clean), pixels)
     images.write_png(os.path.join(tmp, "images", name), image)
@@ -280,7 +281,7 @@ def build(scene: str, distractor_dir: str, out: str, seed: int,
 
   Args:
     scene: str, COLMAP scene folder without transients.
-    distractor_dir: str, folder of photos (see `distractors.list_photos`).
+    distractor_dir: str, folder of photos (see `transient_photos.list_photos`).
     out: str, output folder (must not exist or be empty, unless overwrite).
     seed: int >= 0.
     fraction: float in [0, 1], fraction of training views (independent) or
@@ -303,12 +304,12 @@ def build(scene: str, distractor_dir: str, out: str, seed: int,
   lo_hi = parse_per_view(per_view)
   out = os.path.abspath(out)
   _prepare_out(out, overwrite)
-  distractors.list_photos(distractor_dir)   # its errors before any work
+  transient_photos.list_photos(distractor_dir)   # its errors before any work
   model = load_source(scene, cache_dir)
   if mode == "persistent":     # checked before any work is done
     billboards.make_runs(len(split_views(len(model.names))[0]),
                          persist_views)
-  photos = distractors.load_photos(distractor_dir)
+  photos = transient_photos.load_photos(distractor_dir)
   os.makedirs(os.path.dirname(out), exist_ok=True)
   tmp = f"{out}.tmp-{uuid.uuid4().hex[:8]}"
   try:

@@ -1,4 +1,8 @@
-"""Distractor photos: their categories, soft alphas and 2D pastes."""
+"""Photos pasted into scenes as transients: categories, alphas, 2D pastes.
+
+The folder of photos is prepare.py's --distractors (RobustNeRF's word for
+them); here a distractor is only the paper's prompt set D.
+"""
 
 import os
 

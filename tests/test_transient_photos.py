@@ -1,12 +1,12 @@
-"""Tests for clipgs_jax/data/distractors.py: photo categories."""
+"""Tests for clipgs_jax/data/transient_photos.py: photo categories."""
 
 import os
 
 import numpy as np
 import pytest
 
-from clipgs_jax.data import distractors
 from clipgs_jax.data import images
+from clipgs_jax.data import transient_photos
 import shared_data
 
 
@@ -17,7 +17,7 @@ def _photo(path):
 
 def _categories(folder):
   return {os.path.relpath(p, folder): c
-          for p, c in distractors.list_photos(str(folder))}
+          for p, c in transient_photos.list_photos(str(folder))}
 
 
 def test_subfolders_manifest_and_names(tmp_path):
@@ -37,7 +37,7 @@ def test_subfolders_manifest_and_names(tmp_path):
 def test_manifest_names_subfolder_of_other_name(tmp_path):
   _photo(tmp_path / "shots" / "x.png")
   with pytest.raises(ValueError, match="shots"):
-    distractors.list_photos(str(tmp_path))
+    transient_photos.list_photos(str(tmp_path))
   (tmp_path / "categories.txt").write_text("clutter shots/x.png\n")
   assert _categories(tmp_path) == {"shots/x.png": "clutter"}
 
@@ -58,14 +58,14 @@ def test_bad_folders(tmp_path, files, manifest, error, needle):
   if manifest is not None:
     (tmp_path / "categories.txt").write_text(manifest)
   with pytest.raises(error) as e:
-    distractors.list_photos(str(tmp_path))
+    transient_photos.list_photos(str(tmp_path))
   assert "\n" not in str(e.value) and needle in str(e.value), str(e.value)
 
 
 def test_unknown_photo_error_names_the_fixes(tmp_path):
   _photo(tmp_path / "dog.png")
   with pytest.raises(ValueError) as e:
-    distractors.list_photos(str(tmp_path))
+    transient_photos.list_photos(str(tmp_path))
   msg = str(e.value)
   assert str(tmp_path / "dog.png") in msg
   assert str(tmp_path / "person") in msg and "categories.txt" in msg
@@ -73,7 +73,7 @@ def test_unknown_photo_error_names_the_fixes(tmp_path):
 
 def test_missing_folder(tmp_path):
   with pytest.raises(FileNotFoundError, match="--distractors"):
-    distractors.list_photos(str(tmp_path / "nope"))
+    transient_photos.list_photos(str(tmp_path / "nope"))
 
 
 @shared_data.needs_data("distractors")
