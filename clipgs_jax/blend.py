@@ -35,7 +35,7 @@ TRANSMITTANCE_THRESHOLD = 1e-4
 # rounds (38); a sixth keeps them (40) with 23 lanes instead of 34, so the
 # share of executed pixel evaluations that a tile needed rises from 0.645 to
 # 0.906. Blend time did not move (a round's cost is half fixed overhead);
-# see BUILD_NOTES, session 8.
+# BUILD_NOTES.md, "Rasterizer".
 _AUTO_LANES_DIVISOR = 6
 _GRAD_COLUMNS = 10             # mean 2, conic 3, colour 3, opacity, depth
 
@@ -185,7 +185,8 @@ def forward(grid, splats, tables, pix, pix_inside, emap):
     s = (trans, color, depth, n_contrib, done, zeros,
          None if emap_l is None else zeros)
     # Two entries per loop trip: 6-7 % faster steps at the same compile
-    # time (bonsai ds2 and bird ds4; four, slower; BUILD_NOTES session 24).
+    # time (bonsai ds2 and bird ds4; four, slower; BUILD_NOTES.md,
+    # "Rasterizer").
     trans, color, depth, n_contrib, done, per_entry, per_ev = (
         jax.lax.fori_loop(0, chunk_size, entry, s, unroll=2))
     out = dict(c)
@@ -282,7 +283,7 @@ def backward(grid, splats, tables, pix, color, depth, trans_final, n_contrib,
       g_raw = jnp.where(keep & (raw < MAX_ALPHA) & include, g_alpha, 0.0)
       # Per-pixel terms only: the sums over the tile's pixels run once per
       # chunk below. Summed here, each entry was ~10 small reduce and dot
-      # kernels of its own (BUILD_NOTES, session 24).
+      # kernels of its own (BUILD_NOTES.md, "Rasterizer").
       return (trans * (1.0 - a), v_prefix,
               g_power_b.at[:, b].set(-g_raw * raw), w_b.at[:, b].set(w),
               g_opac_b.at[:, b].set(g_raw * gauss_v))

@@ -41,7 +41,7 @@ class RenderConfig:
   # 8x8 tiles: a splat covers a larger share of a smaller tile, so the blend
   # evaluates fewer zero-alpha pixels. Bird ds4: 0.44 s/step over a 7k-step
   # run; its final state steps in 500-600 ms against 880-1,030 at 16x16
-  # (BUILD_NOTES, session 18).
+  # (BUILD_NOTES.md, "Rasterizer").
   tile_size: int = 8           # tile side in pixels
 
 
@@ -166,8 +166,8 @@ class SemanticConfig:
   #   the opacity loss or eq. 13 prune (0: the paper). Adam's opacity
   #   moments are zeroed at a reset, so until a row's photometric gradient
   #   reaches them the small, steady loss gradient moves its logit at
-  #   several times the learning rate, under min_opacity (BUILD_NOTES,
-  #   session 15)
+  #   several times the learning rate, under min_opacity (BUILD_NOTES.md,
+  #   "Localized evidence")
   max_prune_fraction: float = 0.5  # a prune event that would remove more
   #   of the alive Gaussians than this removes none (1.0: the paper, no guard)
   dense_input_size: int = 448  # clip + pixel: CLIP input side, a multiple

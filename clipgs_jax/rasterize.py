@@ -97,8 +97,8 @@ def _depth_order(depths: jax.Array, valid: jax.Array) -> jax.Array:
   """int32 [N]: jnp.argsort(where(valid, depths, inf), stable=True).
 
   XLA:CPU sorts one integer array several times faster than it sorts keys
-  with a payload, as an argsort does (220k rows: ~20 against ~150 ms,
-  BUILD_NOTES session 12). So every row gets a uint32 key that orders as
+  with a payload, as an argsort does (220k rows: ~20 against ~150 ms;
+  BUILD_NOTES.md, "Rasterizer"). So every row gets a uint32 key that orders as
   the argsort does: the depth's bits mapped to total order for valid rows,
   and _INVALID_KEY + index (above every finite depth) for the rest. One
   plain sort and a binary search give each row the first position of its

@@ -9,9 +9,9 @@ import pytest
 # Must happen before jax is imported anywhere.
 os.environ["JAX_PLATFORMS"] = "cpu"
 
-# issue 13: XLA:CPU's fusion emitters take most of a test program's compile;
-# the older emitters compile the tests' train step ~3x faster (BUILD_NOTES
-# session 17). XLA aborts the process on a flag it does not know, and newer
+# XLA:CPU's fusion emitters take most of a test program's compile; the older
+# emitters compile the tests' train step ~3x faster (BUILD_NOTES.md, "Test and
+# compile time"). XLA aborts the process on a flag it does not know, and newer
 # XLA may drop this one (openxla/xla#48001), so it is set only where a child
 # process accepts it. Set before the xdist workers, the notebook kernel and
 # the scripts' subprocesses start, so they inherit it.
@@ -38,7 +38,7 @@ jax.config.update("jax_disable_most_optimizations", True)
 # absl raises UnparsedFlagAccessError under pytest otherwise.
 flags.FLAGS.mark_as_parsed()
 
-# issue 13: the suite's time is mostly single-threaded XLA compiles, so two
+# The suite's time is mostly single-threaded XLA compiles, so two
 # xdist worker processes use both cores of the 2-core box. Each file runs
 # whole on one worker (--dist loadfile), so the programs its tests share are
 # compiled once.
@@ -60,7 +60,8 @@ def pytest_cmdline_main(config):
       config.option.dist = "loadfile"
     # xdist (>= 3.6) deals files by their number of tests unless told not
     # to, which dealt the one-test notebook (50 s) and the few-test end to
-    # end files last: one worker ran 94 s longer than the other (session 19).
+    # end files last: one worker ran 94 s longer than the other
+    # (BUILD_NOTES.md, "Test and compile time").
     config.option.loadscopereorder = False
 
 

@@ -31,7 +31,8 @@ def _rotmat(q):
 # One jitted program per shape, shared by every test that renders that shape
 # (the camera's values are traced). Run eagerly, it compiled each of its
 # ~100 primitives (and their gradients) at every new shape: 400 small
-# compiles and 10 s of CPU for one gradient test (issue 13).
+# compiles and 10 s of CPU for one gradient test (BUILD_NOTES.md, "Test
+# and compile time").
 @functools.partial(jax.jit, static_argnames=("near", "sh_degree"))
 def render_ref(params, alive, cam, background, near=0.2, sh_degree=None,
                evidence_map=None):

@@ -1,6 +1,6 @@
 """Every bad input ends in one line on stderr, an exit code, and no litter.
 
-One test per row of issue 15's list. Most rows run the library call under
+One test per kind of bad input. Most rows run the library call under
 cli.guarded and cli.output_dir in this process, which is what each script's
 main does around it (experiments/train.py: flags, scene, weights, then the
 workdir); a few rows run experiments/train.py itself, for what only the

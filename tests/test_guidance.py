@@ -291,7 +291,8 @@ class PruneTest(parameterized.TestCase):
 @functools.lru_cache(maxsize=None)
 def _jitted_train_step(cfg):
   """The jitted (not donating) train step of `cfg`, one per config: tests
-  that step the same config share its compile (issue 13)."""
+  that step the same config share its compile (BUILD_NOTES.md, "Test and
+  compile time")."""
   return jax.jit(functools.partial(train.train_step, cfg=cfg))
 
 
@@ -416,7 +417,8 @@ class WiredStepTest(absltest.TestCase):
 
   def _fully_cluttered_fit(self, **semantic_fields):
     # Every view cluttered and tau = 0: every scored Gaussian exceeds tau,
-    # the situation of a fully cluttered benchmark (BUILD_NOTES, issue 6),
+    # the situation of a fully cluttered benchmark (BUILD_NOTES.md,
+    # "Semantic guidance"),
     # where the paper's rule deleted the whole scene.
     scene = _masked_scene()
     scene = dataclasses.replace(scene, train=dataclasses.replace(
@@ -427,7 +429,8 @@ class WiredStepTest(absltest.TestCase):
     cfg = dataclasses.replace(TEST_CFG, semantic=sem,
                               train=dataclasses.replace(TEST_CFG.train,
                                                         steps=21))
-    return train.fit(train.resolve(cfg, scene), scene, self.create_tempdir().full_path,
+    return train.fit(train.resolve(cfg, scene), scene,
+                     self.create_tempdir().full_path,
                      scorer=guidance.make_scorer(sem, scene), progress=False)
 
   def test_guard_refuses_a_prune_that_deletes_the_scene(self):

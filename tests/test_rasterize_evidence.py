@@ -60,7 +60,8 @@ class EvidenceForwardTest(parameterized.TestCase):
     # arithmetic differently, so equal up to float32 rounding. Depth is a
     # ratio sum(w z) / alpha, whose rounding grows where alpha is small: it
     # gets the tolerance it has against the reference (found at 1.0e-5
-    # relative on 11 pixels once the blend loops were unrolled, session 24).
+    # relative on 11 pixels once the blend loops were unrolled;
+    # BUILD_NOTES.md, "Rasterizer").
     for field in ("image", "alpha", "contribution"):
       np.testing.assert_allclose(getattr(out, field), getattr(plain, field),
                                  rtol=1e-6, atol=1e-6, err_msg=field)

@@ -15,7 +15,8 @@ SCRIPTS = tuple(sorted(p.name for p in (ROOT / "experiments").glob("*.py")))
 TRAIN_FLAGS = {"config", "workdir", "scene", "resume", "clip_weights"}
 # cli.run defines these for every script.
 CLI_FLAGS = {"debug", "verbose"}
-# The budget of experiments/ (issue 14: at most half of its 3,000 lines).
+# The budget of experiments/: at most half of the 3,000 lines it once had
+# (BUILD_NOTES.md, "Layout").
 MAX_LINES = 800
 
 

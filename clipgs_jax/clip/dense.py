@@ -28,7 +28,7 @@ from clipgs_jax.clip import model
 
 READOUTS = ('maskclip', 'clearclip')
 # ClearCLIP: same cost as MaskCLIP, and its ablations trace MaskCLIP's noisy
-# maps to the residual path it keeps (see BUILD_NOTES, dense CLIP).
+# maps to the residual path it keeps (BUILD_NOTES.md, "CLIP tower").
 DEFAULT_READOUT = 'clearclip'
 # Keys' cubic convolution parameter of torch's bicubic interpolate, which
 # transformers' CLIPVisionEmbeddings.interpolate_pos_encoding calls; using

@@ -19,8 +19,8 @@ VERSION = 2
 SEED = 20261122
 # Training steps for this scene in the README main job and in train.py
 # when --config.train.steps is not set: clean upper bound 19.94 dB against
-# vanilla 15.20 dB at 700 steps (BUILD_NOTES, "Embedded default scene
-# v2"), and a vanilla and a guided run fit the README's 10 minutes on 2
+# vanilla 15.20 dB at 700 steps (BUILD_NOTES.md, "Embedded default
+# scene"), and a vanilla and a guided run fit the README's 10 minutes on 2
 # cores.
 TRAIN_STEPS = 700
 WIDTH, HEIGHT = 128, 96

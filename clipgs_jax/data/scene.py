@@ -190,7 +190,7 @@ def _load_masks(scene_path, names, downscale, shape):
   on bird_persistent_f1.0 at downscale 8 that was 0.32 % of the transients'
   squared difference to the clean photos, against 0.007 % with this rule,
   and a 5,000-step loss-masked run fitted those borders into visible
-  outlines: BUILD_NOTES, session 14.)
+  outlines: BUILD_NOTES.md, "Localized evidence".)
   """
   paths = [_mask_path(scene_path, n) for n in names]
   present = [os.path.isfile(p) for p in paths]

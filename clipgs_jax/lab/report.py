@@ -125,7 +125,8 @@ def render_masks(workdir: str, tau: float | None = None) -> dict:
   """Writes the transient-mask PNGs and, with ground truth, their IoU.
 
   The mask of a view is the alpha of only the alive Gaussians with
-  s_j > tau (DESIGN.md step 5), as 8-bit grey renders/masks/<stem>.png.
+  s_j > tau (the semantic condition of eq. 13), as 8-bit grey
+  renders/masks/<stem>.png.
   With ground-truth masks, metrics.json gets "mask_iou": iou_summary's
   block plus "tau" and "num_gaussians_above_tau".
 
