@@ -210,26 +210,6 @@ class DensifyTest(absltest.TestCase):
                               jax.random.key(0), cfg=CFG)
     np.testing.assert_array_equal(late.alive, [0, 0, 0, 1, 1, 1])
 
-  def test_resize(self):
-    state = _make_state(8, 5, np.random.default_rng(3))
-    state = _tag_state(state, np.arange(1, 9))
-    grown = state_lib.resize(state, 12)
-    self.assertEqual(grown.capacity, 12)
-    np.testing.assert_array_equal(grown.params.means[:8], state.params.means)
-    np.testing.assert_array_equal(grown.params.quats[8:],
-                                  np.tile([1.0, 0, 0, 0], (4, 1)))
-    self.assertFalse(np.any(grown.alive[8:]))
-    for m in _row_leaves(grown):
-      self.assertEqual(m.shape[0], 12)
-      np.testing.assert_array_equal(m[8:], 0)
-      np.testing.assert_array_equal(m[_first(m)][:8], np.arange(1, 9))
-    np.testing.assert_array_equal(grown.semantic.acc[8:], 0)
-    shrunk = state_lib.resize(grown, 8)
-    chex.assert_trees_all_equal(jax.device_get(shrunk.params),
-                                jax.device_get(state.params))
-    with self.assertRaisesRegex(ValueError, "alive rows would be lost"):
-      state_lib.resize(state, 4)
-
   def test_reset_opacity(self):
     state = _make_state(4, 4, np.random.default_rng(4))
     logits = jnp.array([-8.0, -3.0, 0.0, 4.0])
