@@ -12,7 +12,6 @@ from clipgs_jax import densify
 from clipgs_jax import gaussians
 from clipgs_jax import optim
 from clipgs_jax import project
-from clipgs_jax import semantic
 from clipgs_jax import sh
 from clipgs_jax import state as state_lib
 from clipgs_jax import train

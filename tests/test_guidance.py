@@ -18,7 +18,6 @@ from absl.testing import parameterized
 from clipgs_jax import config
 from clipgs_jax import densify
 from clipgs_jax import guidance
-from clipgs_jax import semantic
 from clipgs_jax import state as state_lib
 from clipgs_jax import train
 from test_densify import CFG as DENSIFY_CFG  # pylint: disable=g-bad-import-order
