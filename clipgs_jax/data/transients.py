@@ -1,6 +1,7 @@
 """RobustNeRF-layout transient benchmarks built from a static COLMAP scene.
 
-Every 8th registered image by sorted name becomes a clean test view
+Every 8th registered image by name (colmap.natural_key order: capture
+order for numbered photos, padded or not) becomes a clean test view
 `images/1extraNNN.png`; the others become training views
 `images/2clutterNNN.png`, with clean twins `images/0cleanNNN.png` (same
 cameras, for the clean upper bound). Transients are real photos of people
@@ -10,11 +11,11 @@ two modes:
 - "independent": each cluttered view gets 1-3 photos pasted at random 2D
   positions, independently of every other view (vanilla 3DGS averages them
   into a haze).
-- "persistent": the training views, in capture order (sorted names), are
-  cut into runs of k consecutive views; each chosen run gets 1-3 photos on
-  planar billboards placed in 3D in front of the scene and rendered into
-  all k views (`billboards.py`), so each is one physical object that
-  vanilla 3DGS can fit as a ghost.
+- "persistent": the training views, in capture order (the same name
+  order), are cut into runs of k consecutive views; each chosen run gets
+  1-3 photos on planar billboards placed in 3D in front of the scene and
+  rendered into all k views (`billboards.py`), so each is one physical
+  object that vanilla 3DGS can fit as a ghost.
 
 `masks/2clutterNNN.png` holds the ground truth (alpha > MASK_THRESHOLD;
 all black for views left clean), `transients.json` lists every transient
@@ -58,7 +59,8 @@ def parse_per_view(text: str) -> tuple[int, int]:
 
 
 def split_views(num: int) -> tuple[list[int], list[int]]:
-  """(train, test) indices into sorted names: every 8th (0, 8, ...) tests."""
+  """(train, test) indices into the model's names (colmap.natural_key
+  order): every 8th (0, 8, ...) tests."""
   test = list(range(0, num, scene_lib.TEST_EVERY))
   return [i for i in range(num) if i % scene_lib.TEST_EVERY], test
 
