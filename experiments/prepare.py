@@ -107,9 +107,8 @@ def _benchmark() -> None:
       mode=_MODE.value, persist_views=_PERSIST_VIEWS.value)
   counts = ", ".join(f"{n} {c}" for c, n in
                      sorted(manifest["transients_by_category"].items()))
-  boards = (f", {len(manifest['billboards'])} billboards of "
-            f"{manifest['persist_views']} views" if "billboards" in manifest
-            else "")
+  boards = (f", {transients.billboard_summary(manifest)}"
+            if "billboards" in manifest else "")
   print(f"wrote {_OUT.value} ({manifest['mode']}): {manifest['num_train']} "
         f"training views ({manifest['num_cluttered']} cluttered; "
         f"transients: {counts or 'none'}{boards}), {manifest['num_test']} "

@@ -262,9 +262,106 @@ def test_place_deeper_when_the_run_moves_far():
     for r, t, k in zip(rots, trans, intr):
       xy, _ = billboards.project(centre, r, t, k)
       assert 0 < xy[0, 0] < WIDTH and 0 < xy[0, 1] < HEIGHT
-  with pytest.raises(ValueError, match="--persist_views"):
+  with pytest.raises(billboards.PlacementError, match="--persist_views"):
     billboards.place(np.random.default_rng(0), (40, 50),
                      *_sliding_cameras(3.0), points)
+
+
+def _write_slide(root, xs):
+  """A capture named 1.png .. N.png (unpadded, as a camera names them) of
+  cameras looking down +z at a wall of SfM points at z = 5..5.5 (in front
+  of every camera), camera i
+  at x = xs[i - 1]; written in reverse id order, so only the names say the
+  capture order."""
+  rec = pycolmap.Reconstruction()
+  rec.add_camera_with_trivial_rig(pycolmap.Camera(
+      camera_id=1, model="PINHOLE", width=WIDTH, height=HEIGHT,
+      params=[80.0, 80.0, 48.0, 36.0]))
+  for i in range(len(xs), 0, -1):
+    name = f"{i}.png"
+    rec.add_image_with_trivial_frame(
+        pycolmap.Image(name=name, camera_id=1, image_id=len(xs) + 1 - i),
+        pycolmap.Rigid3d(pycolmap.Rotation3d(np.eye(3)),
+                         np.array([-xs[i - 1], 0.0, 0.0])))
+    images.write_png(os.path.join(root, "images", name),
+                     np.full((HEIGHT, WIDTH, 3), GREY))
+  rng = np.random.default_rng(0)
+  for x in xs:     # the wall in front of each camera
+    for xyz in rng.uniform([x - 4, -3, 5], [x + 4, 3, 5.5], (20, 3)):
+      rec.add_point3D(xyz, pycolmap.Track(), np.array([9, 9, 9], np.uint8))
+  os.makedirs(os.path.join(root, "sparse", "0"))
+  rec.write_binary(os.path.join(root, "sparse", "0"))
+
+
+def _slide(jumps_before=()):
+  """Camera x of 1.png .. 25.png: 0.5 apart, plus 10 before each photo
+  number in `jumps_before`. At the wall's near depth (~5), a billboard
+  shifts by 80 * 10 / 4.5 > 96 pixels (the width) between two views 10
+  apart, so no billboard is seen by both; 0.5 apart it shifts ~9 px."""
+  return [0.5 * i + 10.0 * sum(i >= j for j in jumps_before)
+          for i in range(1, NUM_VIEWS + 1)]
+
+
+def _numbers(manifest, names):
+  source = {v["name"]: v["source"] for v in manifest["views"]}
+  return [int(source[n].split(".")[0]) for n in names]
+
+
+def test_unpadded_names_run_in_capture_order(tmp_path):
+  """1.png .. 25.png: tests are photos 1, 9, 17, 25 and each run is five
+  consecutive training photos by number (sorted as strings, 1, 10, 11, ...
+  would be a run)."""
+  _write_slide(str(tmp_path / "scene"), _slide())
+  _photo(str(tmp_path / "photos"))
+  manifest = transients.build(
+      str(tmp_path / "scene"), str(tmp_path / "photos"), str(tmp_path / "b"),
+      seed=0, fraction=1.0, per_view="1", mode="persistent", persist_views=K)
+  assert [t["source"] for t in manifest["tests"]] == [
+      "1.png", "9.png", "17.png", "25.png"]
+  train = [i for i in range(1, NUM_VIEWS + 1) if (i - 1) % 8]
+  assert _numbers(manifest, [v["name"] for v in manifest["views"]]) == train
+  runs = [_numbers(manifest, b["views"]) for b in manifest["billboards"]]
+  assert runs == [train[s:s + K] for s in (0, 5, 10, 15, 16)]
+  assert transients.billboard_summary(manifest) == "5 billboards of 5 views"
+  assert "unplaced" not in manifest
+
+
+def test_a_jump_shortens_or_skips_a_run(tmp_path):
+  """Training runs (photo numbers): [2-6], [7 8 10 11 12], [13-16 18],
+  [19-23], [20-24]. A jump before photo 10 leaves run 1 its stretch
+  10-12; jumps before each of 19-23 leave run 3 no two views that see one
+  billboard (skipped) and run 4 the pair 23, 24; the rest is built."""
+  _write_slide(str(tmp_path / "scene"), _slide((10, 19, 20, 21, 22, 23)))
+  _photo(str(tmp_path / "photos"))
+  manifest = transients.build(
+      str(tmp_path / "scene"), str(tmp_path / "photos"), str(tmp_path / "b"),
+      seed=0, fraction=1.0, per_view="1", mode="persistent", persist_views=K)
+  runs = {b["run"]: _numbers(manifest, b["views"])
+          for b in manifest["billboards"]}
+  assert runs == {0: [2, 3, 4, 5, 6], 1: [10, 11, 12],
+                  2: [13, 14, 15, 16, 18], 4: [23, 24]}
+  assert manifest["unplaced"] == [{"run": 3, "photo": "person/p.png"}]
+  assert transients.billboard_summary(manifest) == (
+      "4 billboards: 2 of 5 views, 1 of 3, 1 of 2 (their runs could not "
+      "show them in all 5); 1 not placed, run 3 skipped")
+  for v in manifest["views"]:    # only views a billboard was placed in
+    shown = any(v["name"] in b["views"] for b in manifest["billboards"])
+    assert (v["mask_pixels"] > 0) == shown, v["name"]
+
+
+def test_no_run_can_show_a_billboard(tmp_path):
+  """Every photo 10 apart: no two consecutive views see one billboard, so
+  the build is refused, naming what to check, and leaves nothing."""
+  _write_slide(str(tmp_path / "scene"), _slide(range(2, NUM_VIEWS + 1)))
+  _photo(str(tmp_path / "photos"))
+  with pytest.raises(ValueError, match="could not place a billboard seen "
+                     "by 2 or more consecutive views of any of the 5 "
+                     "chosen runs") as err:
+    transients.build(str(tmp_path / "scene"), str(tmp_path / "photos"),
+                     str(tmp_path / "b"), seed=0, fraction=1.0, per_view="1",
+                     mode="persistent", persist_views=K)
+  assert "\n" not in str(err.value) and "--persist_views" in str(err.value)
+  assert not (tmp_path / "b").exists()
 
 
 def test_cli_persistent(built, tmp_path):

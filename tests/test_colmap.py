@@ -90,6 +90,22 @@ def test_reads_binary_and_text(tmp_path, text):
       np.uint8)
 
 
+def test_natural_name_order(tmp_path):
+  # Numbered photos load in capture order, unpadded or not; on zero-padded
+  # names (and names without numbers) it is the plain sorted order.
+  write_scene(tmp_path, ["10.jpg", "9.jpg", "1.jpg", "2.jpg"])
+  assert colmap.load_model(str(tmp_path)).names == (
+      "1.jpg", "2.jpg", "9.jpg", "10.jpg")
+  for scheme in ([f"{i:03d}.jpg" for i in (1, 2, 9, 10, 100, 184)],
+                 ["DSCF5565.JPG", "DSCF5568.JPG", "DSCF5571.JPG"],
+                 ["0clean000.png", "1extra001.png", "1extra010.png",
+                  "2clutter000.png", "2clutter010.png"],
+                 ["b.png", "a.png", "a-b.png", "a_1.png"]):
+    assert sorted(scheme, key=colmap.natural_key) == sorted(scheme)
+  assert sorted(["img10", "img2", "img02"], key=colmap.natural_key) == [
+      "img02", "img2", "img10"]      # equal numbers: the string order
+
+
 def test_distorted_camera_is_undistorted(tmp_path):
   write_scene(tmp_path / "s", ["a.png", "b.png"],
               cams=(("SIMPLE_RADIAL", 64, 48, (50.0, 32, 24, -0.2)),))

@@ -19,6 +19,8 @@ from clipgs_jax.data import transient_photos
 # all its views (parallax; on bonsai 5 views span 20-57 degrees) gets a
 # deeper one, still in front of the near content.
 DEPTH_STAGES = ((0.3, 0.6, 200), (0.6, 0.9, 300))
+TRIES = sum(  # placements tried for one billboard, all stages together
+    t for _, _, t in DEPTH_STAGES)
 NEAR_QUANTILE = 0.1
 # The centre is aimed at a pixel this far inside the middle view's border,
 # and must project at least this far inside every view of the run, so the
@@ -40,6 +42,10 @@ MIN_CORNER_DEPTH = 0.05
 # (0.9 -> 1.0 of the near depth) and most of it much further.
 GHOST_DEPTH = 0.1
 GHOST_MARGIN = 0.05
+
+
+class PlacementError(ValueError):
+  """No billboard placement is seen by every camera of a run."""
 
 
 def camera_centre(rotation: np.ndarray, translation: np.ndarray):
@@ -127,6 +133,10 @@ def place(rng: np.random.Generator, photo_size, rotations, translations,
 
   Returns:
     float64 [4, 3], corners TL, TR, BR, BL in world coordinates.
+
+  Raises:
+    PlacementError: no try put it in every view.
+    ValueError: the middle view sees no SfM point.
   """
   mid = len(rotations) // 2
   near = near_depth(points, rotations[mid], translations[mid],
@@ -136,9 +146,9 @@ def place(rng: np.random.Generator, photo_size, rotations, translations,
                          intrinsics, sizes, near, low, high, tries)
     if corners is not None:
       return corners
-  raise ValueError(f"could not place a billboard seen by all {len(sizes)} "
-                   f"views of a run in {sum(t for _, _, t in DEPTH_STAGES)} "
-                   "tries; pass a smaller --persist_views.")
+  raise PlacementError(
+      f"could not place a billboard seen by all {len(sizes)} views of a run "
+      f"in {TRIES} tries; pass a smaller --persist_views.")
 
 
 def _try_place(rng, photo_size, rotations, translations, intrinsics, sizes,

@@ -7,6 +7,7 @@ that the package, and a scene pack (scene.pack), load without it.
 import dataclasses
 import hashlib
 import os
+import re
 import shutil
 import uuid
 
@@ -26,10 +27,11 @@ _FIX = ("re-run COLMAP (mapper or model_converter) to write "
 
 @dataclasses.dataclass(frozen=True)
 class Model:
-  """A COLMAP model with pinhole cameras; images sorted by name.
+  """A COLMAP model with pinhole cameras; images in natural name order.
 
   Attributes:
-    names: tuple of N str, image names relative to `image_dir`, sorted.
+    names: tuple of N str, image names relative to `image_dir`, in
+      `natural_key` order (capture order for numbered photos).
     rotations: float64 [N, 3, 3], world-to-camera rotations R.
     translations: float64 [N, 3], world-to-camera translations t.
     intrinsics: float64 [N, 4], (fx, fy, cx, cy) in pixels, COLMAP's
@@ -117,6 +119,16 @@ def read_reconstruction(sparse_dir: str) -> "pycolmap.Reconstruction":
   return rec
 
 
+def natural_key(name: str) -> tuple:
+  """Sort key that compares runs of digits as numbers: 2.jpg before
+  10.jpg, so numbered photos sort in capture order whether or not their
+  numbers are zero-padded. On names whose numbers have equal widths (001,
+  ..., 184) it is the plain string order; ties (1 and 01) fall back to it.
+  """
+  parts = re.split(r"(\d+)", name)    # text, digits, text, ...
+  return tuple(int(p) if i % 2 else p for i, p in enumerate(parts)), name
+
+
 def _registered(rec: "pycolmap.Reconstruction") -> list:
   images = []
   for image in rec.images.values():
@@ -125,7 +137,7 @@ def _registered(rec: "pycolmap.Reconstruction") -> list:
                   else "registered")
     if posed:
       images.append(image)
-  return sorted(images, key=lambda im: im.name)
+  return sorted(images, key=lambda im: natural_key(im.name))
 
 
 def _pose(image) -> tuple[np.ndarray, np.ndarray]:

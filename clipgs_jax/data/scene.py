@@ -14,8 +14,9 @@ from clipgs_jax.data import images
 # `clutter` views have distractors, `clean` views are their clean twins.
 _ROBUSTNERF_TOKENS = ("clutter", "extra", "clean")
 TRAIN_SPLITS = ("clutter", "clean")
-# Without RobustNeRF names, every 8th image by sorted name is a test view
-# (the convention of Mip-NeRF 360 and 3DGS).
+# Without RobustNeRF names, every 8th image by name is a test view (the
+# convention of Mip-NeRF 360 and 3DGS), in colmap.natural_key order: the
+# plain sorted order for zero-padded numbers, capture order for 1..N.
 TEST_EVERY = 8
 # 3DGS's "cameras_extent": camera-centre radius with a 10% margin.
 EXTENT_MARGIN = 1.1
@@ -45,7 +46,8 @@ class Views:
       (rotation [V, 3, 3], translation [V, 3], fx/fy/cx/cy [V]); width and
       height are shared by all views.
     images: float32 [V, H, W, 3] in [0, 1].
-    names: tuple of V str, image names (COLMAP names), sorted.
+    names: tuple of V str, image names (COLMAP names), in
+      colmap.natural_key order.
     masks: bool [V, H, W], True = transient pixel; None when the scene has
       no masks (test views never have masks).
   """
@@ -86,7 +88,7 @@ def _name_tokens(names) -> list[list[str]]:
 
 
 def _split_names(names, train_split: str, sparse_dir: str):
-  """(train indices, test indices) into the sorted `names`."""
+  """(train indices, test indices) into `names` (colmap.Model order)."""
   tokens = _name_tokens(names)
   if any(tokens):
     # RobustNeRF naming: every image must say which split it belongs to.
@@ -229,9 +231,10 @@ def load_scene(path: str, downscale: int = 1, train_split: str = "clutter",
   Splits: with RobustNeRF names (`clutter`, `extra`, `clean` in the image
   names) the test views are `extra` and the training views are
   `train_split` (`clutter`, or `clean` for the clean upper bound); otherwise
-  every 8th image by sorted name (0, 8, 16, ...) is a test view and
-  `train_split` is ignored. Masks are read from `masks/<stem>.png` (white =
-  transient) for the training views when present.
+  every 8th image by name (0, 8, 16, ...; in colmap.natural_key order) is a
+  test view and `train_split` is ignored. Masks are read from
+  `masks/<stem>.png` (white = transient) for the training views when
+  present.
 
   Args:
     path: str, scene folder with `images/` and `sparse/0/`, or a `.npz`

@@ -1,6 +1,7 @@
 """RobustNeRF-layout transient benchmarks built from a static COLMAP scene.
 
-Every 8th registered image by sorted name becomes a clean test view
+Every 8th registered image by name (colmap.natural_key order: capture
+order for numbered photos, padded or not) becomes a clean test view
 `images/1extraNNN.png`; the others become training views
 `images/2clutterNNN.png`, with clean twins `images/0cleanNNN.png` (same
 cameras, for the clean upper bound). Transients are real photos of people
@@ -10,11 +11,15 @@ two modes:
 - "independent": each cluttered view gets 1-3 photos pasted at random 2D
   positions, independently of every other view (vanilla 3DGS averages them
   into a haze).
-- "persistent": the training views, in capture order (sorted names), are
-  cut into runs of k consecutive views; each chosen run gets 1-3 photos on
-  planar billboards placed in 3D in front of the scene and rendered into
-  all k views (`billboards.py`), so each is one physical object that
-  vanilla 3DGS can fit as a ghost.
+- "persistent": the training views, in capture order (the same name
+  order), are cut into runs of k consecutive views; each chosen run gets
+  1-3 photos on planar billboards placed in 3D in front of the scene and
+  rendered into all k views (`billboards.py`), so each is one physical
+  object that vanilla 3DGS can fit as a ghost. A billboard that no
+  placement keeps in all k views (the camera path jumps inside the run)
+  goes to the run's longest stretch of at least MIN_RUN_VIEWS consecutive
+  views that can show it, or is left out ("unplaced" in the manifest);
+  only when no chosen run can show any billboard is the build refused.
 
 `masks/2clutterNNN.png` holds the ground truth (alpha > MASK_THRESHOLD;
 all black for views left clean), `transients.json` lists every transient
@@ -41,6 +46,10 @@ from clipgs_jax.data import scene as scene_lib
 
 MODES = ("independent", "persistent")
 DEFAULT_PERSIST_VIEWS = 5   # views per billboard: RobustNeRF-like runs
+# The fewest consecutive views a billboard may be shown in when its whole
+# run cannot show it: one view would make it an independent paste, not a
+# persistent object.
+MIN_RUN_VIEWS = 2
 MASK_THRESHOLD = transient_photos.MASK_THRESHOLD
 
 
@@ -58,7 +67,8 @@ def parse_per_view(text: str) -> tuple[int, int]:
 
 
 def split_views(num: int) -> tuple[list[int], list[int]]:
-  """(train, test) indices into sorted names: every 8th (0, 8, ...) tests."""
+  """(train, test) indices into the model's names (colmap.natural_key
+  order): every 8th (0, 8, ...) tests."""
   test = list(range(0, num, scene_lib.TEST_EVERY))
   return [i for i in range(num) if i % scene_lib.TEST_EVERY], test
 
@@ -161,33 +171,67 @@ def _camera(model: colmap.Model, i: int):
   return model.rotations[i], model.translations[i], model.intrinsics[i]
 
 
+def _fit(rng, photo_size, model, train_idx, run):
+  """(views, corners [4, 3]) of a billboard in the whole `run` (training
+  positions), else in the first of its longest stretches of consecutive
+  views (down to MIN_RUN_VIEWS) that can show it; (None, None) if none."""
+  for length in range(len(run), min(MIN_RUN_VIEWS, len(run)) - 1, -1):
+    for start in range(len(run) - length + 1):
+      views = run[start:start + length]
+      cams = [train_idx[v] for v in views]
+      try:
+        corners = billboards.place(
+            rng, photo_size, model.rotations[cams], model.translations[cams],
+            model.intrinsics[cams], model.sizes[cams], model.points)
+      except billboards.PlacementError:
+        continue
+      return views, corners
+  return None, None
+
+
 def make_billboards(model, train_idx, photos, seed, fraction, per_view, k):
-  """Billboards of the chosen runs: list of dicts with "corners" [4, 3],
-  "views" (training positions), photo name/category/shape, and the texture
-  ("rgb" [h, w, 3], "alpha" [h, w]; not written to JSON)."""
+  """(billboards, unplaced) of the chosen runs.
+
+  billboards: list of dicts with "corners" [4, 3], "run", "views" (training
+  positions: the run, or its longest stretch that can show the billboard),
+  photo name/category/shape, and the texture ("rgb" [h, w, 3], "alpha"
+  [h, w]; not written to JSON). unplaced: list of {"run", "photo"}, the
+  billboards no stretch of their run could show.
+
+  Raises:
+    ValueError: runs were chosen but none could show any billboard.
+  """
   runs = billboards.make_runs(len(train_idx), k)
   chosen = sorted(choose_cluttered(len(runs), fraction, seed, stream=2))
-  out = []
+  out, unplaced = [], []
   for r in chosen:
     rng = run_rng(seed, r)
-    cams = [train_idx[v] for v in runs[r]]
-    rot, trans = model.rotations[cams], model.translations[cams]
-    intr, sizes = model.intrinsics[cams], model.sizes[cams]
     for _ in range(int(rng.integers(per_view[0], per_view[1] + 1))):
       index = int(rng.integers(len(photos)))
       shapes = transient_photos.SHAPES
       shape = shapes[int(rng.integers(len(shapes)))]
       name, category, pixels = photos[index]
-      corners = billboards.place(rng, pixels.shape[1::-1], rot, trans, intr,
-                                 sizes, model.points)
-      mid = len(cams) // 2
-      tw, th = billboards.texture_size(corners, rot[mid], trans[mid],
-                                       intr[mid])
-      out.append({"id": len(out), "run": r, "views": runs[r], "photo": name,
+      views, corners = _fit(rng, pixels.shape[1::-1], model, train_idx,
+                            runs[r])
+      if views is None:
+        unplaced.append({"run": r, "photo": name})
+        continue
+      mid = train_idx[views[len(views) // 2]]
+      tw, th = billboards.texture_size(corners, model.rotations[mid],
+                                       model.translations[mid],
+                                       model.intrinsics[mid])
+      out.append({"id": len(out), "run": r, "views": views, "photo": name,
                   "category": category, "shape": shape, "corners": corners,
                   "rgb": images.resize_area(pixels, tw, th),
                   "alpha": transient_photos.shape_alpha(tw, th, shape)})
-  return out
+  if chosen and not out:
+    raise ValueError(
+        f"could not place a billboard seen by {min(MIN_RUN_VIEWS, k)} or "
+        f"more consecutive views of any of the {len(chosen)} chosen runs "
+        f"({billboards.TRIES} tries per stretch); the camera path may jump "
+        "between consecutively named photos: check the names' order, pass "
+        "a smaller --persist_views, or use --mode=independent.")
+  return out, unplaced
 
 
 def _persistent_view(pixels, model, i, boards):
@@ -210,13 +254,13 @@ def _persistent_view(pixels, model, i, boards):
 
 def _write_views(model, tmp, photos, seed, fraction, per_view, mode, k):
   """Writes images/ and masks/; returns (views, tests, renames, twins,
-  boards)."""
+  boards, unplaced)."""
   train_idx, test_idx = split_views(len(model.names))
   width = max(3, len(str(max(len(train_idx), len(test_idx)))))
-  boards, cluttered = [], set()
+  boards, unplaced, cluttered = [], [], set()
   if mode == "persistent":
-    boards = make_billboards(model, train_idx, photos, seed, fraction,
-                             per_view, k)
+    boards, unplaced = make_billboards(model, train_idx, photos, seed,
+                                       fraction, per_view, k)
   else:
     cluttered = choose_cluttered(len(train_idx), fraction, seed)
   views, tests, renames, twins = [], [], {}, {}
@@ -246,7 +290,7 @@ def _write_views(model, tmp, photos, seed, fraction, per_view, mode, k):
     views.append({"name": name, "source": source, "clean": clean,
                   "mask": f"masks/{name}", "mask_pixels": int(mask.sum()),
                   "transients": transients})
-  return views, tests, renames, twins, boards
+  return views, tests, renames, twins, boards, unplaced
 
 
 def _describe(boards, views):
@@ -255,6 +299,32 @@ def _describe(boards, views):
            "corners": np.round(b["corners"], 9).tolist(),
            "texture_size": list(b["alpha"].shape[::-1]),
            "views": [views[v]["name"] for v in b["views"]]} for b in boards]
+
+
+def billboard_summary(manifest: dict) -> str:
+  """One phrase on a persistent manifest's billboards, e.g. "71 billboards
+  of 5 views", or with the stretches that replaced runs and what could not
+  be placed: "70 billboards: 68 of 5 views, 2 of 3 (their runs could not
+  show them in all 5); 1 not placed, run 7 skipped"."""
+  boards, k = manifest["billboards"], manifest["persist_views"]
+  lengths = sorted({len(b["views"]) for b in boards}, reverse=True)
+  if lengths in ([], [k]):
+    text = f"{len(boards)} billboards of {k} views"
+  else:
+    counts = ", ".join(
+        f"{sum(len(b['views']) == n for b in boards)} of {n}" +
+        (" views" if i == 0 else "") for i, n in enumerate(lengths))
+    text = (f"{len(boards)} billboards: {counts} (their runs could not show "
+            f"them in all {k})")
+  unplaced = manifest.get("unplaced", [])
+  if unplaced:
+    skipped = sorted({u["run"] for u in unplaced}
+                     - {b["run"] for b in boards})
+    text += f"; {len(unplaced)} not placed"
+    if skipped:
+      text += (f", run{'s' if len(skipped) > 1 else ''} "
+               f"{', '.join(map(str, skipped))} skipped")
+  return text
 
 
 def check_args(fraction: float, seed, mode: str,
@@ -294,7 +364,8 @@ def build(scene: str, distractor_dir: str, out: str, seed: int,
     persist_views: int, views per run (persistent mode).
 
   Returns:
-    The manifest written to `out/transients.json`.
+    The manifest written to `out/transients.json` (`billboard_summary`
+    says in a phrase how its billboards were placed).
 
   Raises:
     ValueError, FileNotFoundError: bad arguments, as one line naming the
@@ -313,7 +384,7 @@ def build(scene: str, distractor_dir: str, out: str, seed: int,
   os.makedirs(os.path.dirname(out), exist_ok=True)
   tmp = f"{out}.tmp-{uuid.uuid4().hex[:8]}"
   try:
-    views, tests, renames, twins, boards = _write_views(
+    views, tests, renames, twins, boards, unplaced = _write_views(
         model, tmp, photos, seed, fraction, lo_hi, mode, persist_views)
     write_model(model.sparse_dir, renames, twins,
                 os.path.join(tmp, "sparse", "0"))
@@ -333,6 +404,8 @@ def build(scene: str, distractor_dir: str, out: str, seed: int,
     if mode == "persistent":
       manifest["persist_views"] = int(persist_views)
       manifest["billboards"] = _describe(boards, views)
+      if unplaced:    # absent when every billboard was placed
+        manifest["unplaced"] = unplaced
     with open(os.path.join(tmp, "transients.json"), "w") as f:
       json.dump(manifest, f, indent=1, sort_keys=True)
     _move_into_place(tmp, out)
