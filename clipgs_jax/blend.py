@@ -15,6 +15,11 @@ their pixels blended), recomputing alphas instead of storing them. A round
 keeps three per-pixel terms of each entry (lanes x chunk x tile pixels) and
 sums them over the pixels once, after its chunk; memory is O(pixels + lanes
 x chunk x tile pixels) plus O(N) gradient rows.
+
+Colours may have any number of channels K (RGB is 3). The rasterizer adds
+a fourth, the evidence probe (rasterize.rasterize), when a per-pixel map
+known only after the render must be summed per Gaussian with the blending
+weights: the backward pass's colour gradient of that channel is the sum.
 """
 
 import dataclasses
@@ -37,7 +42,9 @@ TRANSMITTANCE_THRESHOLD = 1e-4
 # 0.906. Blend time did not move (a round's cost is half fixed overhead);
 # BUILD_NOTES.md, "Rasterizer".
 _AUTO_LANES_DIVISOR = 6
-_GRAD_COLUMNS = 10             # mean 2, conic 3, colour 3, opacity, depth
+# Gradient columns besides the K colour channels: mean 2, conic 3, opacity,
+# depth.
+_GEOMETRY_COLUMNS = 7
 
 
 @dataclasses.dataclass(frozen=True)
@@ -125,21 +132,21 @@ def forward(grid, splats, tables, pix, pix_inside, emap):
 
   Args:
     grid: Grid.
-    splats: (means2d [N, 2], conics [N, 3], colors [N, 3], opacities [N],
+    splats: (means2d [N, 2], conics [N, 3], colors [N, K], opacities [N],
       depths [N]).
     tables: (gauss int32 [M], start int32 [T], count int32 [T]): each tile's
       depth-sorted list is gauss[start : start + count].
     pix: float [T, P, 2] pixel centres; pix_inside: bool [T, P].
     emap: float [T, P] evidence map or None (then no evidence code is traced).
   Returns:
-    color [T, P, 3], depth [T, P], trans [T, P], n_contrib int32 [T, P],
+    color [T, P, K], depth [T, P], trans [T, P], n_contrib int32 [T, P],
     contrib [N], evidence [N] or None, rounds int32 [].
   """
   gauss, start, count = tables
   t, p = pix.shape[:2]
   lanes, chunk_size = grid.num_lanes, grid.chunk_size
   dtype = splats[0].dtype
-  n = splats[0].shape[0]
+  n, channels = splats[2].shape
   queue = jnp.argsort(-count, stable=True).astype(jnp.int32)
   num_queued = jnp.sum(count > 0, dtype=jnp.int32)
   start_p, count_p = _pad_row(start, 0), _pad_row(count, 0)
@@ -211,12 +218,13 @@ def forward(grid, splats, tables, pix, pix_inside, emap):
   init = dict(
       tile=jnp.full((lanes,), t, jnp.int32), head=jnp.int32(0),
       chunk=jnp.zeros((lanes,), jnp.int32), rounds=jnp.int32(0),
-      trans=jnp.ones((lanes, p), dtype), color=jnp.zeros((lanes, p, 3), dtype),
+      trans=jnp.ones((lanes, p), dtype),
+      color=jnp.zeros((lanes, p, channels), dtype),
       depth=jnp.zeros((lanes, p), dtype),
       n_contrib=jnp.zeros((lanes, p), jnp.int32),
       done=jnp.ones((lanes, p), bool),
       out_trans=jnp.ones((t + 1, p), dtype),
-      out_color=jnp.zeros((t + 1, p, 3), dtype),
+      out_color=jnp.zeros((t + 1, p, channels), dtype),
       out_depth=jnp.zeros((t + 1, p), dtype),
       out_n=jnp.zeros((t + 1, p), jnp.int32),
       contrib=jnp.zeros((n,), dtype))
@@ -229,18 +237,19 @@ def forward(grid, splats, tables, pix, pix_inside, emap):
 
 def backward(grid, splats, tables, pix, color, depth, trans_final, n_contrib,
              g_color, g_depth, g_trans):
-  """Gradient rows [N, 10] of the linearised loss, and the rounds it took.
+  """Gradient rows [N, 7 + K] of the linearised loss, and its rounds.
 
   Linearised loss L = sum_k w_k v_k + T_final g_T with v_k = c_k.gC + z_k gD
   per pixel. Walking front to back, the part of the first sum behind entry
   k is v_total minus the running prefix, so no list is stored.
-  Columns: mean (2), conic (3), colour (3), opacity, depth.
+  Columns: mean (2), conic (3), colour (K), opacity, depth.
   """
   gauss, start, _ = tables
   t, p = pix.shape[:2]
   lanes, chunk_size = grid.num_lanes, grid.chunk_size
   dtype = splats[0].dtype
-  n = splats[0].shape[0]
+  n, channels = splats[2].shape
+  columns = _GEOMETRY_COLUMNS + channels
   need = jnp.max(n_contrib, axis=1)                              # [T]
   queue = jnp.argsort(-need, stable=True).astype(jnp.int32)
   num_queued = jnp.sum(need > 0, dtype=jnp.int32)
@@ -274,8 +283,10 @@ def backward(grid, splats, tables, pix, color, depth, trans_final, n_contrib,
       a = jnp.where(include, a, 0.0)
       w = a * trans
       color_b = colors[:, b, None, :]
-      v = (color_b[..., 0] * gc_l[..., 0] + color_b[..., 1] * gc_l[..., 1]
-           + color_b[..., 2] * gc_l[..., 2] + depths[:, b, None] * gd_l)
+      v = color_b[..., 0] * gc_l[..., 0]
+      for k in range(1, channels):
+        v = v + color_b[..., k] * gc_l[..., k]
+      v = v + depths[:, b, None] * gd_l
       v_prefix = v_prefix + w * v
       behind = behind_l - v_prefix
       g_alpha = jnp.where(include, trans * v - behind / (1.0 - a), 0.0)
@@ -302,13 +313,12 @@ def backward(grid, splats, tables, pix, color, depth, trans_final, n_contrib,
     rows = jnp.stack([
         -(ca * gx + cb * gy), -(cb * gx + cc * gy),
         0.5 * jnp.sum(g_power * dx * dx, -1), jnp.sum(g_power * dx * dy, -1),
-        0.5 * jnp.sum(g_power * dy * dy, -1),
-        jnp.sum(w * gc_l[:, None, :, 0], -1),
-        jnp.sum(w * gc_l[:, None, :, 1], -1),
-        jnp.sum(w * gc_l[:, None, :, 2], -1),
-        jnp.sum(g_opac, -1), jnp.sum(w * gd_l[:, None], -1)], -1)  # [L, B, 10]
+        0.5 * jnp.sum(g_power * dy * dy, -1)]
+        + [jnp.sum(w * gc_l[:, None, :, k], -1) for k in range(channels)]
+        + [jnp.sum(g_opac, -1), jnp.sum(w * gd_l[:, None], -1)],
+        -1)                                                  # [L, B, 7 + K]
     rows = jnp.where(in_list[..., None], rows, 0.0)
-    grads = grads.at[gid.reshape(-1)].add(rows.reshape(-1, _GRAD_COLUMNS))
+    grads = grads.at[gid.reshape(-1)].add(rows.reshape(-1, columns))
     chunk = chunk + 1
     finished = (tile != t) & (chunk * chunk_size >= need_p[tile])
     tile = jnp.where(finished, t, tile)
@@ -316,7 +326,7 @@ def backward(grid, splats, tables, pix, color, depth, trans_final, n_contrib,
 
   init = (jnp.full((lanes,), t, jnp.int32), jnp.int32(0),
           jnp.zeros((lanes,), jnp.int32), jnp.ones((lanes, p), dtype),
-          jnp.zeros((lanes, p), dtype), jnp.zeros((n, _GRAD_COLUMNS), dtype),
+          jnp.zeros((lanes, p), dtype), jnp.zeros((n, columns), dtype),
           jnp.int32(0))
   c = jax.lax.while_loop(cond, body, init)
   return c[5], c[6]
@@ -325,7 +335,7 @@ def backward(grid, splats, tables, pix, color, depth, trans_final, n_contrib,
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
 def blend(grid, means2d, conics, colors, opacities, depths, tables, pix,
           pix_inside, emap):
-  """Returns color [T, P, 3], depth, trans [T, P], contrib [N], evidence."""
+  """Returns color [T, P, K], depth, trans [T, P], contrib [N], evidence."""
   splats = (means2d, conics, colors, opacities, depths)
   color, depth, trans, _, contrib, evidence, _ = forward(
       grid, splats, tables, pix, pix_inside, emap)
@@ -347,8 +357,9 @@ def _blend_bwd(grid, residuals, cotangents):
   g_color, g_depth, g_trans = cotangents[:3]
   grads, _ = backward(grid, splats, tables, pix, color, depth, trans,
                       n_contrib, g_color, g_depth, g_trans)
-  return (grads[:, 0:2], grads[:, 2:5], grads[:, 5:8], grads[:, 8],
-          grads[:, 9], None, None, None, None)
+  k = 5 + splats[2].shape[1]
+  return (grads[:, 0:2], grads[:, 2:5], grads[:, 5:k], grads[:, k],
+          grads[:, k + 1], None, None, None, None)
 
 
 blend.defvjp(_blend_fwd, _blend_bwd)
@@ -403,7 +414,8 @@ def blend_autodiff(grid, splats, tables, pix, pix_inside, emap=None):
     return (trans, color, depth, done, contrib, evidence), None
 
   zeros_n = jnp.zeros((splats[0].shape[0],), dtype)
-  init = (jnp.ones((t, p), dtype), jnp.zeros((t, p, 3), dtype),
+  init = (jnp.ones((t, p), dtype),
+          jnp.zeros((t, p, splats[2].shape[1]), dtype),
           jnp.zeros((t, p), dtype), ~pix_inside, zeros_n,
           None if emap is None else zeros_n)
   trans, color, depth, _, contrib, evidence = jax.lax.scan(

@@ -15,7 +15,9 @@ from absl import app
 import ml_collections
 
 from clipgs_jax import cli
+from clipgs_jax import features
 from clipgs_jax import metrics as metrics_lib
+from clipgs_jax import residual
 from clipgs_jax.data import default_scene
 from clipgs_jax.data import scene as scene_lib
 
@@ -115,7 +117,10 @@ PAPER_STEPS = 20_000
 # "uniform" is a control for localized evidence (benchmarks only): every
 # pixel of every training view gets the ground-truth masks' mean transient
 # fraction, i.e. the same total evidence as ORACLE-PIXEL with no location.
-SCORERS = ("off", "clip", "oracle", "uniform")
+# "residual" needs nothing but the photos (the step's own residual);
+# "oracle_patch" is the ground-truth mask at dense CLIP's patch resolution
+# (benchmarks only: what a perfect dense CLIP would give).
+SCORERS = ("off", "clip", "oracle", "uniform", "residual", "oracle_patch")
 WEIGHTINGS = ("visibility", "contribution")
 # Where a scorer's evidence comes from: "image", the paper's one score per
 # rendered view; "pixel", a per-pixel transient probability map per training
@@ -172,12 +177,30 @@ class SemanticConfig:
   #   of the alive Gaussians than this removes none (1.0: the paper, no guard)
   dense_input_size: int = 448  # clip + pixel: CLIP input side, a multiple
   #   of the patch size (B/32: a 14x14 patch grid)
+  # The residual map (scorer "residual"; clipgs_jax/residual.py): a pixel
+  # is transient where the step's own render misses the photo by more than
+  # a running quantile of the residuals.
+  residual: bool = False       # pixel evidence with a semantic map (clip,
+  #   oracle_patch): keep the residual test only where the semantic map's
+  #   p(transient) > 0.5 (implied by scorer "residual", which has none)
+  residual_rule: str = "sls"   # sls (SpotLessSplats) | robustnerf
+  residual_quantile: float = 0.7  # inlier share (SLS 0.7; RobustNeRF 0.8)
+  residual_decay: float = 0.95  # histogram decay per step (RobustNeRF: 0)
+  residual_warmup: float = 3e-3  # rate of the Bernoulli warm-up; 0: none
+  features: str = ""           # residual map: "" per pixel, or "alex" /
+  #   "vgg": each photo's ImageNet-feature regions (features.py) take the
+  #   majority verdict of the residual test inside them
 
   @property
   def enabled(self) -> bool:
     """Guidance runs: a scorer is chosen (config.check rejects a CLIP
     scorer without distractor prompts instead of running vanilla)."""
     return self.scorer != "off"
+
+  @property
+  def uses_residual(self) -> bool:
+    """The step computes the residual map (and carries its statistics)."""
+    return self.enabled and (self.scorer == "residual" or self.residual)
 
   @property
   def localized(self) -> bool:
@@ -418,6 +441,7 @@ def _semantic_problems(sem: SemanticConfig) -> list[str]:
   if sem.scorer == "uniform" and sem.evidence != "pixel":
     problems.append("scorer='uniform' is a per-pixel control map; it needs "
                     "evidence='pixel'")
+  problems += _residual_problems(sem)
   if sem.loss_masking and sem.evidence != "pixel":
     problems.append("loss_masking needs evidence='pixel' (a per-pixel map)")
   if sem.dense_input_size <= 0:
@@ -449,6 +473,37 @@ def _semantic_problems(sem: SemanticConfig) -> list[str]:
                     "(0, 1]")
   if any(not p.strip() for p in sem.distractor_prompts + sem.static_prompts):
     problems.append("a prompt is empty")
+  return problems
+
+
+def _residual_problems(sem: SemanticConfig) -> list[str]:
+  """What makes the residual map's settings unable to run."""
+  problems = []
+  if sem.scorer in ("residual", "oracle_patch") and sem.evidence != "pixel":
+    problems.append(f"scorer={sem.scorer!r} is a per-pixel map; it needs "
+                    "evidence='pixel'")
+  if sem.residual and (sem.scorer not in ("clip", "oracle_patch")
+                       or sem.evidence != "pixel"):
+    problems.append("residual=True combines the residual map with a "
+                    "semantic map: it needs scorer='clip' or 'oracle_patch' "
+                    "and evidence='pixel' (scorer='residual' is the residual "
+                    "map alone)")
+  if sem.features and sem.features not in features.NETS:
+    problems.append(f"features={sem.features!r} is not one of "
+                    f"{', '.join(sorted(features.NETS))} (or '' for none)")
+  if sem.features and not sem.uses_residual:
+    problems.append("features votes the residual test over regions: it "
+                    "needs scorer='residual' or residual=True")
+  if sem.residual_rule not in residual.RULES:
+    problems.append(f"residual_rule={sem.residual_rule!r} is not one of "
+                    f"{', '.join(residual.RULES)}")
+  if not 0.0 < sem.residual_quantile < 1.0:
+    problems.append(f"residual_quantile={sem.residual_quantile} is not in "
+                    "(0, 1)")
+  if not 0.0 <= sem.residual_decay < 1.0:
+    problems.append(f"residual_decay={sem.residual_decay} is not in [0, 1)")
+  if not sem.residual_warmup >= 0:
+    problems.append(f"residual_warmup={sem.residual_warmup} must be >= 0")
   return problems
 
 

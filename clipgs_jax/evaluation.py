@@ -165,3 +165,75 @@ def transient_mask_iou(params: gaussians.GaussianParams, views,
                        renders(padded, alive, views, cfg)])
   return iou_summary(views.names, alphas, views.masks) | {
       "num_gaussians": num}
+
+
+# A map pixel counts as transient above this (maps are probabilities).
+MAP_THRESHOLD = 0.5
+
+
+@functools.lru_cache(maxsize=None)
+def _view_map_fn(cfg: config_lib.Config):
+  """Jitted (params, alive, stats, scorer, view, cam, photo, degree) -> the
+  map the loss would use for that training view now."""
+  from clipgs_jax import map_sources  # pylint: disable=g-import-not-at-top
+
+  def fn(params, alive, stats, scorer, view, cam, photo, degree):
+    bg = jnp.asarray(cfg.train.background, jnp.float32)
+    image = rasterize.render(params, alive, cam, bg, cfg.render,
+                             degree).image
+    return map_sources.view_map(scorer, stats, view, image, photo,
+                                cfg.semantic)
+  return jax.jit(fn)
+
+
+def mask_quality(params: gaussians.GaussianParams, alive, stats, scorer,
+                 views, cfg: config_lib.Config, degree) -> dict | None:
+  """How well the transient maps the loss uses match the ground truth.
+
+  For every training view: the map m that a training step on it would use
+  now (for the residual map, from the current model's render of the view;
+  static maps as they are), thresholded at MAP_THRESHOLD, against the
+  view's ground-truth mask.
+
+  Args:
+    params, alive: the current model.
+    stats: TrainState.maps (the residual statistics, or None).
+    scorer: the run's pixel scorer (guidance.PixelMapScorer or
+      map_sources.ResidualSource).
+    views: the training Views, with masks.
+    cfg: the run's config.
+    degree: int32 [], the SH degree the steps use now.
+  Returns:
+    {"precision", "recall", "iou" (pixels pooled over all views; None where
+    undefined), "per_view": {name: {"precision", "recall", "iou"}}}, or
+    None when the views have no masks.
+  """
+  if views.masks is None:
+    return None
+  fn = _view_map_fn(config_lib.compiled_part(cfg))
+  cams = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), views.cameras)
+  totals = np.zeros(3, np.int64)
+  per_view = {}
+  for i, name in enumerate(views.names):
+    m = np.asarray(fn(params, alive, stats, scorer, jnp.int32(i),
+                      camera_lib.camera_at(cams, i),
+                      jnp.asarray(views.images[i], jnp.float32), degree))
+    counts = _confusion(m > MAP_THRESHOLD, np.asarray(views.masks[i], bool))
+    totals += counts
+    per_view[name] = _scores(counts)
+  return _scores(totals) | {"per_view": per_view,
+                            "map_threshold": MAP_THRESHOLD}
+
+
+def _confusion(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
+  """int64 [3]: true positives, false positives, false negatives."""
+  return np.array([np.count_nonzero(pred & truth),
+                   np.count_nonzero(pred & ~truth),
+                   np.count_nonzero(~pred & truth)], np.int64)
+
+
+def _scores(counts) -> dict[str, float | None]:
+  tp, fp, fn = (int(c) for c in counts)
+  ratio = lambda a, b: a / b if b else None
+  return {"precision": ratio(tp, tp + fp), "recall": ratio(tp, tp + fn),
+          "iou": ratio(tp, tp + fp + fn)}

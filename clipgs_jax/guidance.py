@@ -38,6 +38,7 @@ import numpy as np
 
 from clipgs_jax import config as config_lib
 from clipgs_jax import densify
+from clipgs_jax import map_sources
 from clipgs_jax import semantic
 from clipgs_jax import state as state_lib
 
@@ -62,6 +63,10 @@ def per_step_keys(sem: config_lib.SemanticConfig) -> tuple[str, ...]:
   out of the training log."""
   return per_step_value_keys(sem) + ("view", "scored")
 
+
+# ORACLE-PATCH pools the masks to the patch grid of dense CLIP's input:
+# ViT-B/32's patch side in pixels (dense_input_size 448 -> a 14x14 grid).
+ORACLE_PATCH_SIZE = 32
 
 # Bins of the s_j histogram logged at each prune event, over [0, beta / 2]
 # for image evidence (s_j is a mean of beta * max(0, s_hat_d - 0.5) <=
@@ -119,7 +124,9 @@ def make_scorer(sem: config_lib.SemanticConfig, scene, *,
   """
   if not sem.enabled:
     return None
-  if sem.scorer in ("oracle", "uniform"):
+  if sem.scorer == "residual":
+    return _residual_source(None, sem, scene)
+  if sem.scorer in ("oracle", "uniform", "oracle_patch"):
     masks = scene.train.masks
     if masks is None:
       raise ValueError(
@@ -129,6 +136,9 @@ def make_scorer(sem: config_lib.SemanticConfig, scene, *,
           "--config.semantic.scorer=clip|off.")
     if sem.scorer == "uniform":
       return uniform_control(masks)
+    if sem.scorer == "oracle_patch":
+      return _pixel_source(map_sources.oracle_patch_maps(
+          masks, sem.dense_input_size // ORACLE_PATCH_SIZE), sem, scene)
     if sem.localized:
       return PixelMapScorer(maps=jnp.asarray(masks, jnp.float32))
     return OracleScorer(masks=jnp.asarray(masks, bool),
@@ -139,9 +149,27 @@ def make_scorer(sem: config_lib.SemanticConfig, scene, *,
     dense = clip_scorer.make_dense(sem, weights_path=clip_weights,
                                    clip_params=clip_params,
                                    input_size=sem.dense_input_size)
-    return PixelMapScorer(maps=dense_maps(dense, scene.train.images))
+    return _pixel_source(dense_maps(dense, scene.train.images), sem, scene)
   return clip_scorer.make(sem, weights_path=clip_weights,
                           clip_params=clip_params)
+
+
+def _pixel_source(maps: jax.Array, sem: config_lib.SemanticConfig, scene):
+  """A semantic map per view: as it is, or gating the residual map."""
+  if sem.residual:
+    return _residual_source(maps, sem, scene)
+  return PixelMapScorer(maps=maps)
+
+
+def _residual_source(maps, sem: config_lib.SemanticConfig, scene
+                     ) -> map_sources.ResidualSource:
+  """The residual map's scorer, with the photos' feature regions when
+  sem.features names a backbone."""
+  if not sem.features:
+    return map_sources.ResidualSource(semantic=maps)
+  labels, num = map_sources.feature_regions(scene.train.images, sem.features)
+  return map_sources.ResidualSource(semantic=maps, labels=labels,
+                                    num_regions=num)
 
 
 def uniform_control(masks) -> PixelMapScorer:

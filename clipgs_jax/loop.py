@@ -26,6 +26,7 @@ from clipgs_jax import densify as densify_lib
 from clipgs_jax import evaluation
 from clipgs_jax import guidance
 from clipgs_jax import state as state_lib
+from clipgs_jax import sh
 
 _log = logging.getLogger(__name__)
 
@@ -46,6 +47,8 @@ class FitLog:
     pending: (step, device metrics) of the per-step scores not yet fetched.
     last_metrics: the device metrics of the latest train step.
     last_info: the device counts of the latest densify, or None.
+    mask_quality: the latest evaluation.mask_quality (with per-view
+      values), or None.
   """
   curve: list[dict[str, float]] = dataclasses.field(default_factory=list)
   scores: list[dict[str, Any]] = dataclasses.field(default_factory=list)
@@ -59,6 +62,7 @@ class FitLog:
       default_factory=list)
   last_metrics: dict[str, jax.Array] | None = None
   last_info: dict[str, jax.Array] | None = None
+  mask_quality: dict[str, Any] | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,6 +76,7 @@ class Context:
     end: the last step this call runs (cfg.train.steps unless stopped
       early).
     densify_key: the key densify folds each step into.
+    scorer: the run's guidance scorer, or None.
     bar: a tqdm progress bar, or None.
   """
   cfg: config_lib.Config
@@ -79,6 +84,7 @@ class Context:
   ckpt_path: str
   end: int
   densify_key: jax.Array
+  scorer: Any = None
   bar: Any = None
 
   @property
@@ -149,15 +155,31 @@ def record_step(flog: FitLog, step: int, metrics: dict[str, jax.Array],
 
 def eval_point(state: state_lib.TrainState, flog: FitLog, step: int,
                ctx: Context) -> FitLog:
-  """Test PSNR of the current model, appended to the curve."""
+  """Test PSNR of the current model, appended to the curve; with pixel
+  evidence on a scene with masks, also the quality of the maps the loss
+  uses (evaluation.mask_quality)."""
   result = evaluation.evaluate(state.params, state.alive, ctx.scene.test,
                                ctx.cfg, psnr_only=True)
   _log.info("step %d: test PSNR %.3f after %.1f s of training, %d alive",
             step, result["mean/psnr"], flog.train_seconds,
             int(jnp.sum(state.alive)))
-  return dataclasses.replace(flog, curve=flog.curve + [{
-      "step": step, "seconds": flog.train_seconds,
-      "test_psnr": result["mean/psnr"]}])
+  point = {"step": step, "seconds": flog.train_seconds,
+           "test_psnr": result["mean/psnr"]}
+  quality = flog.mask_quality
+  if ctx.cfg.semantic.localized and ctx.scene.train.masks is not None:
+    degree = sh.active_degree(state.step, ctx.cfg.densify.sh_degree_every,
+                              ctx.cfg.gaussians.sh_degree)
+    quality = evaluation.mask_quality(
+        state.params, state.alive, state.maps, ctx.scorer, ctx.scene.train,
+        ctx.cfg, degree)
+    point.update({f"mask_{k}": quality[k]
+                  for k in ("precision", "recall", "iou")})
+    _log.info("step %d: transient maps vs ground truth: precision %s, "
+              "recall %s, IoU %s", step, *(
+                  "n/a" if quality[k] is None else f"{quality[k]:.3f}"
+                  for k in ("precision", "recall", "iou")))
+  return dataclasses.replace(flog, curve=flog.curve + [point],
+                             mask_quality=quality)
 
 
 def evaluate(state: state_lib.TrainState, flog: FitLog, step: int,
@@ -335,6 +357,8 @@ class FitResult:
     pruned: semantic guidance only: numpy GaussianParams of the rows the
       semantic rule removed, as they were when removed (None if none were;
       rows removed before a resume are not kept).
+    mask_quality: pixel evidence on a scene with masks: the last
+      evaluation.mask_quality, else None.
   """
   state: state_lib.TrainState
   cfg: config_lib.Config
@@ -344,6 +368,7 @@ class FitResult:
   scores: list[dict[str, Any]]
   prune_events: list[dict[str, Any]]
   pruned: Any = None
+  mask_quality: dict[str, Any] | None = None
 
 
 def result(state: state_lib.TrainState, cfg: config_lib.Config,
@@ -354,4 +379,4 @@ def result(state: state_lib.TrainState, cfg: config_lib.Config,
   return FitResult(state=state, cfg=cfg, curve=flog.curve,
                    train_seconds=flog.train_seconds, log=flog.log,
                    scores=flog.scores, prune_events=flog.prune_events,
-                   pruned=pruned)
+                   pruned=pruned, mask_quality=flog.mask_quality)

@@ -49,6 +49,8 @@ class RenderOutput:
     contribution: float [C], sum over pixels of its blending weights.
     evidence: float [C], sum over pixels of its blending weights times the
       evidence map, from the same pass; None when no map was given.
+    probe_image: float [H, W], the evidence probe blended as a fourth
+      colour channel over a zero background; None without a probe.
     num_overflow: int32 [], tile-list entries dropped because the view's
       intersections exceeded the buffer, num_tiles x `tile_budget` (0 means
       the render is exact; one tile may hold any number of them).
@@ -60,6 +62,7 @@ class RenderOutput:
   visible: Any
   contribution: Any
   evidence: Any
+  probe_image: Any
   num_overflow: Any
   max_tile_count: Any
 
@@ -277,7 +280,8 @@ def _prepare(proj: project_lib.Projected, cam: camera_lib.Camera,
 def rasterize(proj: project_lib.Projected, cam: camera_lib.Camera,
               background: jax.Array, cfg: config_lib.RenderConfig,
               custom_vjp: bool = True,
-              evidence_map: jax.Array | None = None) -> RenderOutput:
+              evidence_map: jax.Array | None = None,
+              probe: jax.Array | None = None) -> RenderOutput:
   """Bins, sorts and blends projected splats into an image.
 
   `custom_vjp=False` swaps in `blend.blend_autodiff` (benchmarks and tests
@@ -286,10 +290,24 @@ def rasterize(proj: project_lib.Projected, cam: camera_lib.Camera,
   makes the same pass also return `RenderOutput.evidence`, per Gaussian the
   sum over pixels of blending weight times map value. Without it the traced
   program is the plain render and `evidence` is None.
+  `probe` (float [C]) is the same sum for a map known only after the
+  render, from the backward pass: it is blended as a fourth colour channel
+  into `RenderOutput.probe_image`, so with probe = 0 and a loss term
+  sum(stop_gradient(m) * probe_image) (worth 0) the gradient d loss /
+  d probe_j is sum_i w_ij m_i, and no other gradient changes.
   """
   grid, splats, tables, pix, pix_inside, num_overflow, max_count = (
       _prepare(proj, cam, cfg))
   dtype = proj.means2d.dtype
+  if probe is not None:
+    if np.shape(probe) != np.shape(proj.depths):
+      raise ValueError(f"probe must be float [C] = {list(np.shape(proj.depths))}"
+                       f", one value per Gaussian, got {np.shape(probe)}.")
+    means2d, conics, colors, opacities, depths = splats
+    colors = jnp.concatenate([colors, probe.astype(dtype)[:, None]], -1)
+    splats = (means2d, conics, colors, opacities, depths)
+    background = jnp.concatenate([background.astype(dtype),
+                                  jnp.zeros((1,), dtype)])
   emap = None
   if evidence_map is not None:
     _check_evidence_map(evidence_map, cam)
@@ -304,12 +322,15 @@ def rasterize(proj: project_lib.Projected, cam: camera_lib.Camera,
   trans = _untile(trans, grid)
   alpha = 1.0 - trans
   image = _untile(color, grid) + trans[..., None] * background.astype(dtype)
+  probe_image = None
+  if probe is not None:
+    image, probe_image = image[..., :3], image[..., 3]
   depth = _untile(depth, grid)
   has_alpha = alpha > 0
   depth = jnp.where(has_alpha, depth / jnp.where(has_alpha, alpha, 1.0), 0.0)
   return RenderOutput(
       image=image, alpha=alpha, depth=depth, visible=contrib > 0,
-      contribution=contrib, evidence=evidence,
+      contribution=contrib, evidence=evidence, probe_image=probe_image,
       num_overflow=num_overflow.astype(jnp.int32),
       max_tile_count=max_count.astype(jnp.int32))
 

@@ -134,6 +134,15 @@ def semantic_label(sem: config_lib.SemanticConfig) -> str:
   if not sem.prune:
     variant += ", no pruning"
   if sem.localized:
+    if sem.scorer == "residual":
+      return (f"residual map ({sem.residual_rule}, no weights, no oracle)"
+              + variant)
+    if sem.residual:
+      variant += f", gating the residual map ({sem.residual_rule})"
+    if sem.scorer == "oracle_patch":
+      return ("localized CLIP-GS machinery, ORACLE-PATCH scorer "
+              "(ground-truth masks at dense CLIP's patch grid, not CLIP)"
+              + variant)
     if sem.scorer == "uniform":
       return ("localized CLIP-GS machinery, UNIFORM control map (the "
               "ground-truth masks' mean everywhere: no location)" + variant)
@@ -170,6 +179,8 @@ def _write_semantic_logs(workdir: str, cfg: config_lib.Config,
   if result.pruned is not None:
     block["pruned_mask_iou"] = evaluation.transient_mask_iou(
         result.pruned, scene.train, cfg)
+  if result.mask_quality is not None:
+    block["mask_quality"] = result.mask_quality
   return block
 
 

@@ -75,6 +75,8 @@ class TrainState:
     semantic: SemanticStats, per row, CLIP-GS evidence statistics.
     step: int32 [], finished optimisation steps.
     key: PRNG key of the run; constant, per-step keys come from fold_in.
+    maps: the transient map's running statistics (residual.ResidualState)
+      when the map is the residual map, else None; fixed in size.
   """
   params: gaussians.GaussianParams
   alive: jax.Array
@@ -83,6 +85,7 @@ class TrainState:
   semantic: SemanticStats
   step: jax.Array
   key: jax.Array
+  maps: Any = None
 
   @property
   def capacity(self) -> int:

@@ -20,10 +20,12 @@ from clipgs_jax import guidance
 from clipgs_jax import initialize
 from clipgs_jax import losses
 from clipgs_jax import loop
+from clipgs_jax import map_sources
 from clipgs_jax import metrics as metrics_lib
 from clipgs_jax import optim
 from clipgs_jax import project
 from clipgs_jax import rasterize
+from clipgs_jax import residual as residual_lib
 from clipgs_jax import semantic as semantic_lib
 from clipgs_jax import sh
 from clipgs_jax import state as state_lib
@@ -34,6 +36,7 @@ _log = logging.getLogger(__name__)
 _VIEW_STREAM = 1
 _BACKGROUND_STREAM = 2
 _DENSIFY_STREAM = 3
+_RESIDUAL_STREAM = 4
 
 CHECKPOINT_NAME = "checkpoint.npz"
 
@@ -86,7 +89,9 @@ def init_state(cfg: config_lib.Config, params: gaussians.GaussianParams,
       densify=state_lib.DensifyStats.zeros(capacity),
       semantic=state_lib.SemanticStats.zeros(capacity),
       step=jnp.zeros((), jnp.int32),
-      key=jax.random.key(cfg.train.seed))
+      key=jax.random.key(cfg.train.seed),
+      maps=(residual_lib.ResidualState.initial()
+            if cfg.semantic.uses_residual else None))
 
 
 def view_index(key: jax.Array, step: jax.Array, num_views: int
@@ -143,28 +148,50 @@ def train_step(state: state_lib.TrainState, batch: Batch, scorer=None, *,
                            cfg.gaussians.sh_degree)
   sem = cfg.semantic
   localized = scorer is not None and sem.localized
+  # The residual map depends on the render: it cannot go into the render's
+  # pass, so its per-Gaussian sums come from the backward pass (probe).
+  dynamic = scorer is not None and sem.uses_residual
   evidence_map = (jax.lax.stop_gradient(scorer.score_map(view))
-                  if localized else None)
-  loss_weight = (1.0 - evidence_map if localized and sem.loss_masking
-                 else None)
+                  if localized and not dynamic else None)
+  loss_weight = (1.0 - evidence_map
+                 if evidence_map is not None and sem.loss_masking else None)
+  sample_key = jax.random.fold_in(
+      jax.random.fold_in(state.key, _RESIDUAL_STREAM), step)
 
-  def loss_fn(params, offset):
+  def loss_fn(params, offset, probe):
     proj = project.project(params, state.alive, cam, near=cfg.render.near,
                            sh_degree=degree)
     proj = proj.replace(means2d=proj.means2d + offset)
     out = rasterize.rasterize(proj, cam, bg, cfg.render,
-                              evidence_map=evidence_map)
+                              evidence_map=evidence_map, probe=probe)
+    weight, rmap = loss_weight, None
+    if dynamic:
+      rmap = map_sources.residual_map(scorer, state.maps, view, out.image,
+                                      target, step, sample_key, sem)
+      if sem.loss_masking:
+        weight = rmap.loss_weight
     loss, terms = losses.photometric(out.image, target,
-                                     cfg.train.lambda_dssim, loss_weight)
+                                     cfg.train.lambda_dssim, weight)
+    if dynamic:
+      # Worth exactly 0 (the probe is 0); its gradient with respect to the
+      # probe is each Gaussian's sum_i w_ij m_i.
+      loss = loss + jnp.sum(jax.lax.stop_gradient(rmap.transient)
+                            * out.probe_image)
     if scorer is not None:
       terms["semantic_loss"] = guidance.opacity_regularizer(
           state.semantic, params.opacity_logits, state.alive, step, cfg)
       loss = loss + terms["semantic_loss"]
-    return loss, (out, proj, terms)
+    return loss, (out, proj, terms, rmap)
 
   offset = jnp.zeros((state.capacity, 2), state.params.means.dtype)
-  (loss, (out, proj, terms)), (grads, grad2d) = jax.value_and_grad(
-      loss_fn, argnums=(0, 1), has_aux=True)(state.params, offset)
+  if dynamic:
+    probe = jnp.zeros((state.capacity,), state.params.means.dtype)
+    (loss, (out, proj, terms, rmap)), (grads, grad2d, probe_grad) = (
+        jax.value_and_grad(loss_fn, argnums=(0, 1, 2), has_aux=True)(
+            state.params, offset, probe))
+  else:
+    (loss, (out, proj, terms, rmap)), (grads, grad2d) = jax.value_and_grad(
+        loss_fn, argnums=(0, 1), has_aux=True)(state.params, offset, None)
   # Dead rows get no gradient from the render; the mask makes it explicit.
   grads = jax.tree.map(
       lambda g: jnp.where(
@@ -190,7 +217,23 @@ def train_step(state: state_lib.TrainState, batch: Batch, scorer=None, *,
   for field in optim.FIELDS:
     metrics[f"grad_norm/{field}"] = optax.tree.norm(getattr(grads, field))
   semantic_stats = state.semantic
-  if localized:
+  maps = state.maps
+  if dynamic:
+    maps = residual_lib.update(maps, rmap.residual,
+                               quantile=sem.residual_quantile,
+                               decay=sem.residual_decay)
+    due = guidance.scores_due(step, sem)
+    semantic_stats = semantic_lib.accumulate_pixel(
+        state.semantic, probe_grad, out.contribution, out.visible, due)
+    metrics["semantic_loss"] = terms["semantic_loss"]
+    metrics.update(
+        map_mean=jnp.mean(rmap.transient), view=view, scored=due,
+        residual_threshold=state.maps.threshold,
+        # The share of the map that the agreement rule would keep.
+        agreement_share=jnp.sum(rmap.transient * semantic_lib.agreement(
+            jax.lax.stop_gradient(out.image), target))
+        / jnp.maximum(jnp.sum(rmap.transient), 1.0))
+  elif localized:
     metrics["semantic_loss"] = terms["semantic_loss"]
     due = guidance.scores_due(step, sem)
     evidence, weight = out.evidence, out.contribution
@@ -211,7 +254,7 @@ def train_step(state: state_lib.TrainState, batch: Batch, scorer=None, *,
     metrics.update(scores, view=view)
   new_state = state.replace(params=params, opt_state=opt_state,
                             densify=stats, semantic=semantic_stats,
-                            step=step + 1)
+                            step=step + 1, maps=maps)
   return new_state, metrics
 
 
@@ -316,7 +359,8 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
   ctx = loop.Context(
       cfg=cfg, scene=scene, ckpt_path=ckpt_path,
       end=total if stop_after is None else min(total, stop_after),
-      densify_key=jax.random.fold_in(state.key, _DENSIFY_STREAM))
+      densify_key=jax.random.fold_in(state.key, _DENSIFY_STREAM),
+      scorer=scorer)
   if start == 0 and cfg.train.eval_every and loop.eval_due(0, ctx):
     flog = loop.eval_point(state, flog, 0, ctx)
   if progress:

@@ -158,3 +158,47 @@ class EvidenceBadInputTest(parameterized.TestCase):
     with self.assertRaisesRegex(ValueError, "evidence_map must be floating"):
       rasterize.render(self.params, self.alive, self.cam, BG,
                        evidence_map=jnp.zeros((29, 37), jnp.int32))
+
+
+class EvidenceProbeTest(parameterized.TestCase):
+  """The evidence of a map known only after the render, from the backward
+  pass: the probe channel's gradient equals the forward-pass evidence."""
+
+  @parameterized.named_parameters(("custom_vjp", True), ("autodiff", False))
+  def test_probe_gradient_is_evidence(self, custom_vjp):
+    cam = synthetic.front_camera(37, 29)
+    params, alive = _scene(120, 5)
+    emap = _map(29, 37, 5)
+    proj = project.project(params, alive, cam, near=CFG.near, sh_degree=1)
+
+    def loss(means2d, probe):
+      out = rasterize.rasterize(proj.replace(means2d=means2d), cam, BG, CFG,
+                                custom_vjp=custom_vjp, probe=probe)
+      return jnp.sum(out.image ** 2) + jnp.sum(emap * out.probe_image), out
+
+    probe = jnp.zeros((120,), jnp.float32)
+    (value, out), (g_means, g_probe) = jax.jit(jax.value_and_grad(
+        loss, argnums=(0, 1), has_aux=True))(proj.means2d, probe)
+    np.testing.assert_array_equal(out.probe_image, 0.0)
+    forward = rasterize.rasterize(proj, cam, BG, CFG, custom_vjp=custom_vjp,
+                                  evidence_map=emap)
+    self.assertGreater(float(jnp.max(forward.evidence)), 0.1)
+    np.testing.assert_allclose(g_probe, forward.evidence, rtol=1e-5,
+                               atol=1e-6)
+    # The probe term adds nothing to the loss or to any other gradient (up
+    # to float32 rounding: four channels are summed in another order).
+    plain = lambda m: jnp.sum(rasterize.rasterize(
+        proj.replace(means2d=m), cam, BG, CFG,
+        custom_vjp=custom_vjp).image ** 2)
+    plain_value, plain_grad = jax.jit(jax.value_and_grad(plain))(proj.means2d)
+    np.testing.assert_allclose(value, plain_value, rtol=1e-6)
+    np.testing.assert_allclose(g_means, plain_grad, rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(out.image, forward.image, rtol=1e-6,
+                               atol=1e-6)
+
+  def test_probe_shape_error(self):
+    cam = synthetic.front_camera(16, 16)
+    params, alive = _scene(20, 0)
+    proj = project.project(params, alive, cam, near=CFG.near, sh_degree=1)
+    with self.assertRaisesRegex(ValueError, "probe must be float"):
+      rasterize.rasterize(proj, cam, BG, CFG, probe=jnp.zeros((3,)))

@@ -1,0 +1,144 @@
+"""Where a training step's per-pixel transient map m comes from.
+
+Static sources give one map per training view before training (the
+ground-truth mask, ORACLE-PATCH, dense CLIP: guidance.PixelMapScorer); the
+step hands the view's map to the rasterizer, which sums it per Gaussian in
+the render's own pass. The residual source (`ResidualSource`) computes m
+inside the step from the step's own render and photo (residual.py), with
+running statistics in TrainState.maps; the render cannot read a map that
+depends on it, so the per-Gaussian sums come from the backward pass through
+the rasterizer's evidence probe (rasterize.rasterize). The combination of
+the residual map with a semantic map (the residual test, kept only where
+the semantic map calls the pixel transient) is the residual source with a
+static map to intersect.
+"""
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from clipgs_jax import config as config_lib
+from clipgs_jax import features
+from clipgs_jax import residual
+
+# The combination rule: a pixel the residual test calls transient stays
+# transient only where the semantic map's p(transient) exceeds this.
+SEMANTIC_GATE = 0.5
+
+
+@flax.struct.dataclass
+class ResidualSource:
+  """The residual map's scorer: what it reads besides the step's render.
+
+  Attributes:
+    semantic: float32 [V, H, W] in [0, 1] or None: per-view semantic maps
+      (dense CLIP, ORACLE-PATCH) that gate the residual test.
+    labels: int32 [V, H, W] or None: each training photo's feature regions
+      (features.regions), which take the majority verdict of the residual
+      test inside them.
+    num_regions: the regions' label count (static).
+  """
+  semantic: jax.Array | None = None
+  labels: jax.Array | None = None
+  num_regions: int = flax.struct.field(pytree_node=False, default=0)
+
+
+@flax.struct.dataclass
+class ResidualMap:
+  """One step's residual map.
+
+  Attributes:
+    transient: float32 [H, W] in {0, 1}, the map m (1 = transient).
+    loss_weight: float32 [H, W] in {0, 1}, the per-pixel weight of the
+      photometric loss: 1 - m, with the warm-up's sampled pixels kept.
+    residual: float32 [H, W], mean_c |render - photo|.
+  """
+  transient: jax.Array
+  loss_weight: jax.Array
+  residual: jax.Array
+
+
+def residual_map(source: ResidualSource, stats: residual.ResidualState,
+                 view: jax.Array, render: jax.Array, photo: jax.Array,
+                 step: jax.Array, key: jax.Array,
+                 sem: config_lib.SemanticConfig) -> ResidualMap:
+  """The transient map of training view `view` at `step`.
+
+  Args:
+    source: the scorer (ResidualSource).
+    stats: the running residual statistics (TrainState.maps).
+    view: int32 [], the view's index.
+    render: float [H, W, 3], the step's render (no gradient flows).
+    photo: float [H, W, 3], the view's photo.
+    step: int32 [], finished steps.
+    key: the step's PRNG key for the warm-up's sampling.
+    sem: the semantic config (residual_* fields).
+  """
+  res = residual.residual(render, photo)
+  inlier = residual.inliers(res, stats.threshold, sem.residual_rule)
+  if source.labels is not None:
+    inlier = 1.0 - features.vote(inlier, source.labels[view],
+                                 source.num_regions)
+  kept = residual.sample_inliers(inlier, step, key, sem.residual_warmup)
+  transient, dropped = 1.0 - inlier, 1.0 - kept
+  if source.semantic is not None:
+    gate = (source.semantic[view] > SEMANTIC_GATE).astype(transient.dtype)
+    transient, dropped = transient * gate, dropped * gate
+  return ResidualMap(transient=transient, loss_weight=1.0 - dropped,
+                     residual=res)
+
+
+def feature_regions(images, net: str) -> tuple[jax.Array, int]:
+  """(int32 [V, H, W] regions of every training photo, label count), from
+  the `net` backbone's features (features.regions, once per photo)."""
+  clustering = features.Clustering(net=net)
+  labels = np.stack([features.regions(im, clustering) for im in images])
+  return jnp.asarray(labels, jnp.int32), clustering.num_regions
+
+
+def _pool_matrix(n: int, cells: int) -> np.ndarray:
+  """float64 [cells, n]: row k averages the pixels of the k-th of `cells`
+  equal spans of n pixels, each pixel weighted by its overlap."""
+  edges = np.arange(cells + 1) * (n / cells)
+  lo, hi = edges[:-1, None], edges[1:, None]
+  px = np.arange(n)[None, :]
+  overlap = np.clip(np.minimum(hi, px + 1) - np.maximum(lo, px), 0.0, None)
+  return overlap / (n / cells)
+
+
+def oracle_patch_maps(masks, grid: int) -> jax.Array:
+  """ORACLE-PATCH: ground-truth masks as a perfect dense CLIP would see them.
+
+  Each mask is averaged over a grid x grid layout of equal cells (dense
+  CLIP squashes the whole view to its square input, so cell k spans the
+  k-th 1/grid of each axis) and upsampled back as dense CLIP's patch map is
+  (clip.dense.upsample). Benchmarks only: it reads the ground truth.
+
+  Args:
+    masks: bool [V, H, W], True = transient.
+    grid: patches per side of the CLIP input (14 for B/32 at 448 px).
+  Returns:
+    float32 [V, H, W] in [0, 1].
+  """
+  from clipgs_jax.clip import dense  # pylint: disable=g-import-not-at-top
+  masks = np.asarray(masks, np.float64)
+  _, h, w = masks.shape
+  rows, cols = _pool_matrix(h, grid), _pool_matrix(w, grid)
+  pooled = np.einsum("ih,vhw,jw->vij", rows, masks, cols)
+  return jnp.stack([dense.upsample(jnp.asarray(p, jnp.float32), h, w)
+                    for p in pooled])
+
+
+
+def view_map(scorer, stats: residual.ResidualState | None, view: jax.Array,
+             render: jax.Array, photo: jax.Array,
+             sem: config_lib.SemanticConfig) -> jax.Array:
+  """float32 [H, W], the map m a training step on `view` would use now:
+  the residual map for a ResidualSource (from `render`, the view rendered
+  by the current model; m does not depend on the warm-up's sampling), else
+  the static map of a guidance.PixelMapScorer (`render` unread)."""
+  if isinstance(scorer, ResidualSource):
+    return residual_map(scorer, stats, view, render, photo, jnp.int32(0),
+                        jax.random.key(0), sem).transient
+  return scorer.score_map(view)

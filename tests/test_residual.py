@@ -1,0 +1,173 @@
+"""The residual map: running quantile, neighbourhood rules, warm-up, sources."""
+
+import dataclasses
+
+from absl.testing import absltest
+from absl.testing import parameterized
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from clipgs_jax import config
+from clipgs_jax import map_sources
+from clipgs_jax import residual
+
+
+class QuantileTest(parameterized.TestCase):
+
+  @parameterized.parameters(0.5, 0.7, 0.9)
+  def test_threshold_is_the_quantile(self, q):
+    res = np.random.default_rng(0).uniform(0, 0.5, size=(40, 30))
+    state = residual.update(residual.ResidualState.initial(),
+                            jnp.asarray(res, jnp.float32), quantile=q,
+                            decay=0.95)
+    # The threshold is a bin edge: within one bin of numpy's quantile.
+    self.assertAlmostEqual(float(state.threshold), np.quantile(res, q),
+                           delta=2.0 / residual.HISTOGRAM_BINS)
+    self.assertEqual(float(jnp.sum(state.histogram)), res.size)
+
+  def test_decay_weights_the_past(self):
+    low = jnp.full((10, 10), 0.1)
+    high = jnp.full((10, 10), 0.9)
+    state = residual.ResidualState.initial()
+    for _ in range(20):
+      state = residual.update(state, low, quantile=0.7, decay=0.5)
+    # One step of high residuals against a decayed past of 1.0 x 100
+    # (sum of 0.5^k) low ones: 100 high vs ~100 low, the quantile is high.
+    after = residual.update(state, high, quantile=0.7, decay=0.5)
+    self.assertAlmostEqual(float(after.threshold), 0.9, delta=1e-3)
+    # With decay 0 only the last step counts.
+    fresh = residual.update(state, low, quantile=0.7, decay=0.0)
+    self.assertAlmostEqual(float(fresh.threshold), 0.1, delta=1e-3)
+    np.testing.assert_array_equal(np.nonzero(np.asarray(fresh.histogram))[0],
+                                  [1000])
+
+  def test_initial_threshold_keeps_every_pixel(self):
+    state = residual.ResidualState.initial()
+    res = jnp.full((8, 8), 0.99)
+    np.testing.assert_array_equal(
+        residual.inliers(res, state.threshold, "sls"), 1.0)
+
+  def test_extreme_residuals_stay_finite(self):
+    state = residual.ResidualState.initial()
+    res = jnp.array([[0.0, 1.0], [5.0, -1.0]])   # outside [0, 1]: clipped
+    state = residual.update(state, res, quantile=0.7, decay=0.95)
+    chex.assert_tree_all_finite(state)
+    self.assertEqual(float(jnp.sum(state.histogram)), 4.0)
+
+
+class RuleTest(absltest.TestCase):
+
+  def test_sls_isolated_outlier_is_rescued_by_neighbours(self):
+    res = np.zeros((7, 7), np.float32)
+    res[3, 3] = 1.0                           # one outlier, 8 inliers around
+    res[0:3, 0:3] = 1.0                       # a 3x3 block of outliers
+    inl = np.asarray(residual.inliers(jnp.asarray(res), 0.5, "sls"))
+    self.assertEqual(inl[3, 3], 1.0)
+    # The block's centre has no inlier neighbour: it stays an outlier; its
+    # corner pixel at (0, 0) sees 0 of 9 inliers (zero padding).
+    self.assertEqual(inl[1, 1], 0.0)
+    self.assertEqual(inl[0, 0], 0.0)
+    # (2, 2) sees 4 inliers of 9 (its block, and (3, 3)): not rescued.
+    self.assertEqual(inl[2, 2], 0.0)
+    # (3, 3)'s rescue needs more than half: 8 of 9 around it are inliers.
+    res[4, 4] = res[4, 3] = res[3, 4] = res[2, 4] = 1.0
+    inl = np.asarray(residual.inliers(jnp.asarray(res), 0.5, "sls"))
+    self.assertEqual(inl[3, 3], 0.0)
+
+  def test_robustnerf_blocks_take_the_window_verdict(self):
+    res = np.zeros((32, 32), np.float32)
+    res[8:16, 8:16] = 1.0                # one 8x8 block of outliers
+    inl = np.asarray(residual.inliers(jnp.asarray(res), 0.5, "robustnerf"))
+    # The block's 16x16 window holds 64 - (box-filter erosion) outliers of
+    # 256 pixels: well under 40 %, so the whole block is an inlier.
+    np.testing.assert_array_equal(inl, 1.0)
+    res[4:20, 4:20] = 1.0                # a 16x16 region of outliers
+    inl = np.asarray(residual.inliers(jnp.asarray(res), 0.5, "robustnerf"))
+    np.testing.assert_array_equal(inl[8:16, 8:16], 0.0)
+    self.assertEqual(inl[28, 28], 1.0)
+
+  def test_robustnerf_odd_sizes(self):
+    res = jnp.zeros((13, 21))
+    inl = residual.inliers(res, 0.5, "robustnerf")
+    self.assertEqual(inl.shape, (13, 21))
+    np.testing.assert_array_equal(inl, 1.0)
+
+  def test_unknown_rule(self):
+    with self.assertRaisesRegex(ValueError, "not one of sls, robustnerf"):
+      residual.inliers(jnp.zeros((4, 4)), 0.5, "median")
+
+
+class WarmupTest(absltest.TestCase):
+
+  def test_share_closed_form(self):
+    # a = exp(-3e-3 floor((s + 1) / 1.5)): s = 0 -> 1; s = 999 -> exp(-2).
+    self.assertAlmostEqual(float(residual.warmup_share(jnp.int32(0), 3e-3)),
+                           1.0)
+    self.assertAlmostEqual(
+        float(residual.warmup_share(jnp.int32(999), 3e-3)),
+        np.exp(-3e-3 * np.floor(1000 / 1.5)), places=6)
+
+  def test_sampling(self):
+    inlier = jnp.asarray(np.random.default_rng(1).uniform(size=(64, 64))
+                         > 0.5, jnp.float32)
+    key = jax.random.key(0)
+    # No warm-up: the map itself.
+    np.testing.assert_array_equal(
+        residual.sample_inliers(inlier, jnp.int32(10), key, 0.0), inlier)
+    # At step 0 every pixel is kept; late, only the inliers.
+    np.testing.assert_array_equal(
+        residual.sample_inliers(inlier, jnp.int32(0), key, 3e-3), 1.0)
+    late = residual.sample_inliers(inlier, jnp.int32(100_000), key, 3e-3)
+    np.testing.assert_array_equal(late, inlier)
+    # Inliers are always kept.
+    mid = residual.sample_inliers(inlier, jnp.int32(300), key, 3e-3)
+    self.assertTrue(bool(jnp.all(mid >= inlier)))
+    share = float(jnp.sum(mid - inlier) / jnp.sum(1 - inlier))
+    self.assertAlmostEqual(share, float(residual.warmup_share(
+        jnp.int32(300), 3e-3)), delta=0.05)
+
+
+class SourceTest(absltest.TestCase):
+
+  def _sem(self, **kw):
+    return dataclasses.replace(config.SemanticConfig(), scorer="residual",
+                               evidence="pixel", residual_warmup=0.0, **kw)
+
+  def test_residual_map_and_gate(self):
+    photo = jnp.zeros((16, 16, 3))
+    render = photo.at[4:12, 4:12].set(1.0)       # an 8x8 miss
+    stats = residual.ResidualState.initial().replace(
+        threshold=jnp.float32(0.5))
+    view = jnp.int32(0)
+    plain = map_sources.residual_map(
+        map_sources.ResidualSource(), stats, view, render, photo,
+        jnp.int32(5), jax.random.key(0), self._sem())
+    np.testing.assert_array_equal(plain.transient[5:11, 5:11], 1.0)
+    self.assertEqual(float(jnp.sum(plain.transient[:3])), 0.0)
+    np.testing.assert_array_equal(plain.loss_weight, 1.0 - plain.transient)
+    # The gate keeps the residual test only where p(transient) > 0.5.
+    semantic = jnp.zeros((1, 16, 16)).at[0, :, :8].set(0.9)
+    gated = map_sources.residual_map(
+        map_sources.ResidualSource(semantic=semantic), stats, view, render,
+        photo, jnp.int32(5), jax.random.key(0), self._sem())
+    np.testing.assert_array_equal(gated.transient[:, 8:], 0.0)
+    np.testing.assert_array_equal(gated.transient[:, :8],
+                                  plain.transient[:, :8])
+
+  def test_oracle_patch_pools_to_the_grid(self):
+    masks = np.zeros((2, 28, 42), bool)
+    masks[0, :14, :21] = True         # one quadrant: 7 x 7 cells of 14 x 14
+    maps = np.asarray(map_sources.oracle_patch_maps(masks, 14))
+    self.assertEqual(maps.shape, (2, 28, 42))
+    self.assertAlmostEqual(maps[0, 2, 2], 1.0, places=5)
+    self.assertAlmostEqual(maps[0, 25, 38], 0.0, places=5)
+    np.testing.assert_allclose(maps[1], 0.0, atol=1e-6)
+    # Pooling keeps the transient area (bilinear upsampling, half-pixel
+    # centres, spreads it a little at the edge).
+    self.assertAlmostEqual(maps[0].mean(), masks[0].mean(), delta=0.02)
+
+
+if __name__ == "__main__":
+  absltest.main()
