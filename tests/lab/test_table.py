@@ -1,5 +1,6 @@
 """clipgs_jax.table and sweep: rows, Markdown, and a table end to end."""
 
+import dataclasses
 import json
 import os
 import pathlib
@@ -83,6 +84,27 @@ class FormatTest(absltest.TestCase):
         table.collect_row("s", "oracle", _row_cfg("oracle"), m)["mask_iou"],
         0.25)
 
+  def test_map_quality_and_the_control_against_clean(self):
+    label = "residual map (sls, no weights, no oracle), loss masking"
+    residual = _metrics(23.0, fraction_pruned=0.1, label=label)
+    residual["semantic"]["mask_quality"] = {
+        "precision": 0.8, "recall": 0.7, "iou": 0.6}
+    control = _metrics(23.5, fraction_pruned=0.0, label=label)
+    rows = table.add_deltas([
+        table.collect_row("s", "vanilla", _row_cfg("vanilla"),
+                          _metrics(20.0)),
+        table.collect_row("s", "clean", _row_cfg("clean"), _metrics(24.0)),
+        table.collect_row("s", "residual", _row_cfg("residual"), residual),
+        table.collect_row("s", "residual_clean", _row_cfg("residual_clean"),
+                          control)])
+    by_row = {r["row"]: r for r in rows}
+    self.assertAlmostEqual(by_row["residual"]["delta_psnr"], 3.0)
+    self.assertEqual(by_row["residual"]["map_recall"], 0.7)
+    # The control trains on the clean views: measured against clean.
+    self.assertAlmostEqual(by_row["residual_clean"]["delta_psnr"], -0.5)
+    text = table.format_markdown(rows, {"lpips_net": "alex"})
+    self.assertIn("| 0.80 / 0.70 / 0.60 | +3.00 |", text)
+
   def test_markdown(self):
     text = table.format_markdown(self._rows(), {"steps": 30,
                                                 "lpips_net": "alex"})
@@ -93,7 +115,7 @@ class FormatTest(absltest.TestCase):
     vanilla, oracle, clip, clean = body
     self.assertIn("ORACLE", oracle)
     self.assertIn("| 21.50 |", oracle)
-    self.assertIn("| 0.125 | n/a | +1.50 | +2.50 |", oracle)
+    self.assertIn("| 0.125 | n/a | — | +1.50 | +2.50 |", oracle)
     self.assertIn("| — | — | — | +4.00 |", vanilla)
     self.assertIn("FAILED (error: no weights)", clip)
     self.assertIn("| 24.00 |", clean)
@@ -102,22 +124,43 @@ class FormatTest(absltest.TestCase):
   def test_row_configs(self):
     # The rows of configs/table.py: the old table.py flags, as overrides.
     cfgs = {row: _row_cfg(row) for row in _table_cd().sweep.rows.split(",")}
-    self.assertEqual(list(cfgs), ["vanilla", "oracle", "oracle_pixel",
-                                  "oracle_pixel_masked", "clip",
-                                  "clip_pixel", "clean"])
+    self.assertEqual(list(cfgs), [
+        "vanilla", "oracle", "oracle_pixel", "oracle_pixel_masked", "clip",
+        "clip_pixel", "residual", "residual_features",
+        "oracle_patch_residual", "clip_residual", "clean", "residual_clean",
+        "residual_features_clean"])
     bench = config.named("benchmark")
     sem = bench.semantic      # scaled to the steps
     self.assertEqual(cfgs["vanilla"].semantic.scorer, "off")
     self.assertEqual(cfgs["clean"].data.train_split, "clean")
     self.assertEqual(cfgs["oracle"].semantic,
                      config.SemanticConfig(
-                         scorer="oracle").scaled_to(1000))
+                         scorer="oracle").scaled_to(bench.train.steps))
     self.assertEqual(cfgs["oracle_pixel_masked"].semantic.evidence, "pixel")
     self.assertTrue(cfgs["oracle_pixel_masked"].semantic.loss_masking)
     self.assertEqual(cfgs["clip_pixel"].semantic.scorer, "clip")
-    for cfg in cfgs.values():   # everything else is the benchmark's
+    # The residual rows: the residual map (with feature regions, or gated
+    # by a semantic map), loss masking, SpotLessSplats' L1-only loss; their
+    # controls train on the clean twins.
+    residual_rows = ("residual", "residual_features", "oracle_patch_residual",
+                     "clip_residual", "residual_clean",
+                     "residual_features_clean")
+    for row in residual_rows:
+      self.assertTrue(cfgs[row].semantic.uses_residual, row)
+      self.assertTrue(cfgs[row].semantic.loss_masking, row)
+      self.assertEqual(cfgs[row].train.lambda_dssim, 0.0, row)
+    self.assertEqual(cfgs["residual_features"].semantic.features, "alex")
+    self.assertEqual(cfgs["oracle_patch_residual"].semantic.scorer,
+                     "oracle_patch")
+    self.assertEqual(cfgs["residual_features_clean"].data.train_split,
+                     "clean")
+    self.assertEqual(cfgs["residual_features_clean"].semantic,
+                     cfgs["residual_features"].semantic)
+    for row, cfg in cfgs.items():   # everything else is the benchmark's
       self.assertEqual(cfg.render, bench.render)
-      self.assertEqual(cfg.train, bench.train)
+      train = (dataclasses.replace(bench.train, lambda_dssim=0.0)
+               if row in residual_rows else bench.train)
+      self.assertEqual(cfg.train, train)
       self.assertEqual(cfg.semantic.prune_start, sem.prune_start)
 
 
