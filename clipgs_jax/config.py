@@ -187,6 +187,8 @@ class SemanticConfig:
   residual_quantile: float = 0.7  # inlier share (SLS 0.7; RobustNeRF 0.8)
   residual_decay: float = 0.95  # histogram decay per step (RobustNeRF: 0)
   residual_warmup: float = 3e-3  # rate of the Bernoulli warm-up; 0: none
+  residual_median_factor: float = 0.0  # threshold >= this x the median
+  #   residual (0: the quantile alone)
   features: str = ""           # residual map: "" per pixel, or "alex" /
   #   "vgg": each photo's ImageNet-feature regions (features.py) take the
   #   majority verdict of the residual test inside them
@@ -502,6 +504,9 @@ def _residual_problems(sem: SemanticConfig) -> list[str]:
                     "(0, 1)")
   if not 0.0 <= sem.residual_decay < 1.0:
     problems.append(f"residual_decay={sem.residual_decay} is not in [0, 1)")
+  if not sem.residual_median_factor >= 0:
+    problems.append(f"residual_median_factor={sem.residual_median_factor} "
+                    "must be >= 0")
   if not sem.residual_warmup >= 0:
     problems.append(f"residual_warmup={sem.residual_warmup} must be >= 0")
   return problems

@@ -64,8 +64,15 @@ def _bins(res: jax.Array) -> jax.Array:
                   HISTOGRAM_BINS - 1)
 
 
+def _quantile(cumulative: jax.Array, q: float) -> jax.Array:
+  """float32 [], the lower edge of the first bin whose cumulative count
+  reaches q of the total (a residual strictly below it is under q)."""
+  first = jnp.argmax(cumulative >= q * cumulative[-1])
+  return first.astype(jnp.float32) / HISTOGRAM_BINS
+
+
 def update(state: ResidualState, res: jax.Array, *, quantile: float,
-           decay: float) -> ResidualState:
+           decay: float, median_factor: float = 0.0) -> ResidualState:
   """Adds one step's residuals; the threshold becomes their quantile.
 
   Args:
@@ -74,16 +81,20 @@ def update(state: ResidualState, res: jax.Array, *, quantile: float,
     quantile: the inlier share, e.g. 0.7: the threshold is the residual
       under which this share of the (decayed) histogram lies.
     decay: weight of the past histogram (0: this step's residuals only).
+    median_factor: the threshold is at least this times the histogram's
+      median (0: the quantile alone). A quantile calls the same share of
+      pixels outliers whether or not the views hold transients; the floor
+      keeps pixels whose residual is ordinary for the current fit.
   """
   counts = jnp.zeros((HISTOGRAM_BINS,), jnp.float32).at[
       _bins(res).reshape(-1)].add(1.0)
   histogram = decay * state.histogram + counts
   cumulative = jnp.cumsum(histogram)
-  # The first bin whose cumulative count reaches the quantile; its lower
-  # edge is the threshold (a residual strictly below it is an inlier).
-  first = jnp.argmax(cumulative >= quantile * cumulative[-1])
-  return ResidualState(histogram=histogram,
-                       threshold=first.astype(jnp.float32) / HISTOGRAM_BINS)
+  threshold = _quantile(cumulative, quantile)
+  if median_factor > 0:
+    threshold = jnp.maximum(threshold,
+                            median_factor * _quantile(cumulative, 0.5))
+  return ResidualState(histogram=histogram, threshold=threshold)
 
 
 def _box3(x: jax.Array) -> jax.Array:

@@ -221,7 +221,8 @@ def train_step(state: state_lib.TrainState, batch: Batch, scorer=None, *,
   if dynamic:
     maps = residual_lib.update(maps, rmap.residual,
                                quantile=sem.residual_quantile,
-                               decay=sem.residual_decay)
+                               decay=sem.residual_decay,
+                               median_factor=sem.residual_median_factor)
     due = guidance.scores_due(step, sem)
     semantic_stats = semantic_lib.accumulate_pixel(
         state.semantic, probe_grad, out.contribution, out.visible, due)

@@ -43,6 +43,22 @@ class QuantileTest(parameterized.TestCase):
     np.testing.assert_array_equal(np.nonzero(np.asarray(fresh.histogram))[0],
                                   [1000])
 
+  def test_median_floor(self):
+    # Residuals 0.01..0.10 evenly: the 0.7 quantile is ~0.07, the median
+    # ~0.05; a floor of 3 x median lifts the threshold to ~0.15.
+    res = jnp.asarray(np.linspace(0.01, 0.10, 100).reshape(10, 10),
+                      jnp.float32)
+    plain = residual.update(residual.ResidualState.initial(), res,
+                            quantile=0.7, decay=0.9)
+    floored = residual.update(residual.ResidualState.initial(), res,
+                              quantile=0.7, decay=0.9, median_factor=3.0)
+    self.assertAlmostEqual(float(plain.threshold), 0.073, delta=2e-3)
+    self.assertAlmostEqual(float(floored.threshold), 3 * 0.055, delta=5e-3)
+    # A floor under the quantile changes nothing.
+    low = residual.update(residual.ResidualState.initial(), res,
+                          quantile=0.7, decay=0.9, median_factor=1.0)
+    self.assertEqual(float(low.threshold), float(plain.threshold))
+
   def test_initial_threshold_keeps_every_pixel(self):
     state = residual.ResidualState.initial()
     res = jnp.full((8, 8), 0.99)
