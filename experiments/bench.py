@@ -8,6 +8,8 @@
       --batch_sizes=1,8 [--noencoders --scorers --dense_input_sizes=224,448]
   python experiments/bench.py --bench=semantic [--timed_steps=40
       --checkpoint=RUN/checkpoint.npz --score_every=1,10,20]
+  python experiments/bench.py --bench=features --bench_scene=DIR
+      [--bench_downscale=8 --repeats=21]
 
 rasterizer: custom VJP against plain autodiff of the forward, per (N, image
   size, variant), on Gaussians scattered in the view frustum.
@@ -17,6 +19,8 @@ step: one training step on a real view, stage by stage, at each Gaussian
 clip: the CLIP encoders, preprocessing, tokenizer and text cache, and
   (--scorers) the view scorers, on random weights.
 semantic: step-time overhead of guidance over the vanilla step.
+features: the feature regions of the first --repeats training photos
+  (per photo, compiled once) and their per-step vote (features.benchmark).
 The lab's functions (clipgs_jax/lab/timing.py, clipgs_jax/lab/
 clip_timing.py) document every field.
 """
@@ -28,11 +32,13 @@ from absl import flags
 from clipgs_jax.lab import timing
 from clipgs_jax import cli
 from clipgs_jax import config as config_lib
+from clipgs_jax import features
 from clipgs_jax.lab import clip_timing
 from clipgs_jax.clip import dense
 from clipgs_jax.clip import model
 from clipgs_jax.clip import scorer
 from clipgs_jax.data import default_scene
+from clipgs_jax.data import scene as scene_lib
 
 # Per benchmark defaults of the shared flags (None on the command line).
 DEFAULTS = {
@@ -44,6 +50,7 @@ DEFAULTS = {
                  bench_downscale=4),
     "clip": dict(repeats=10),
     "semantic": dict(tile_budget=8192, bench_downscale=1),
+    "features": dict(repeats=21, bench_downscale=8),
 }
 
 _BENCH = flags.DEFINE_enum("bench", None, list(DEFAULTS), "What to time.")
@@ -68,10 +75,12 @@ _MAX_GIB = flags.DEFINE_float(
     "max_gib", 12.0, "rasterizer: skip a variant whose compiled forward + "
     "backward needs more memory than this (GiB).")
 _SCENE = flags.DEFINE_string(
-    "bench_scene", None, "step / semantic: scene folder or pack (step: "
-    "required, e.g. the bird scene; semantic: default the embedded scene).")
-_DOWNSCALE = flags.DEFINE_integer("bench_downscale", None, "step / semantic: "
-                                  "image downscale (default 4 / 1).")
+    "bench_scene", None, "step / semantic / features: scene folder or pack "
+    "(step, features: required, e.g. the bird scene; semantic: default the "
+    "embedded scene).")
+_DOWNSCALE = flags.DEFINE_integer(
+    "bench_downscale", None, "step / semantic / features: image downscale "
+    "(default 4 / 1 / 8).")
 _VIEW = flags.DEFINE_integer("view", 0, "step: training view index.")
 _CHECKPOINT = flags.DEFINE_string("checkpoint", None, "step / semantic: a "
                                   "train.py checkpoint.npz of the scene.")
@@ -173,6 +182,16 @@ def _results():
       yield from clip_timing.encoders(
           _CLIP_VARIANT.value, render_hw, runs=repeats, warmup=_WARMUP.value,
           batch_sizes=_ints(_BATCH_SIZES.value))
+  elif what == "features":
+    cli.require(_SCENE.value is not None, "bench_scene", _SCENE.value,
+                "is missing: --bench=features clusters real photos; pass a "
+                "scene folder or pack, e.g. --bench_scene=DATA/bird")
+    cli.require_file("bench_scene", _SCENE.value)
+    downscale = _value("bench_downscale", _DOWNSCALE)
+    photos = scene_lib.load_scene(
+        _SCENE.value, downscale=downscale).train.images[:repeats]
+    yield dict(features.benchmark(photos), scene=_SCENE.value,
+               downscale=downscale)
   else:
     yield from timing.semantic_overhead(
         _SCENE.value or default_scene.ensure_default_scene(),

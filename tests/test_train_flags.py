@@ -56,9 +56,10 @@ class ConfigFilesTest(absltest.TestCase):
     cfg = config.named("benchmark")
     self.assertEqual((cfg.train.steps, cfg.data.downscale,
                       cfg.render.tile_budget, cfg.train.eval_every),
-                     (1000, 8, 8192, 50))
+                     (2500, 8, 8192, 125))
+    self.assertEqual(cfg.render.tile_size, 8)
     self.assertEqual(cfg.semantic,
-                     config.SemanticConfig().scaled_to(1000))
+                     config.SemanticConfig().scaled_to(2500))
 
   def test_demo_checkpoints_once_at_any_steps(self):
     cd = _cd("demo")

@@ -106,23 +106,42 @@ def _settings(cfg: config_lib.Config, clip_weights: str | None,
       **table.machine_and_date()}
 
 
-def _demo_outputs(workdir: str, cfgs: dict, metrics: dict,
-                  use_clip: bool) -> dict:
-  """comparison.png and comparison.json of the demo's two runs."""
-  _, _, scene = run_lib.load_run(os.path.join(workdir, "vanilla"))
+def _short_label(sem: config_lib.SemanticConfig) -> str:
+  """A panel title: what a demo row's map needs (run.semantic_label says
+  it in full)."""
+  if not sem.enabled:
+    return "vanilla 3DGS"
+  if sem.scorer in ("oracle", "uniform", "oracle_patch"):
+    return "ORACLE-PIXEL (ground truth)" if sem.scorer == "oracle" else (
+        sem.scorer.upper())
+  name = "dense CLIP" if sem.scorer == "clip" else "residual map"
+  if sem.scorer == "clip" and sem.residual:
+    name += " + residual"
+  return name + (" + features" if sem.features else "")
+
+
+def _demo_outputs(workdir: str, cfgs: dict, metrics: dict) -> dict:
+  """comparison.png and comparison.json of the demo's runs.
+
+  The rows are vanilla first, then the row the demo shows (the best one
+  that needs nothing but the photos, or dense CLIP with weights), then any
+  reference rows (ORACLE-PIXEL); the picture is the test view where the
+  shown row changes PSNR most against vanilla, one panel per row and the
+  ground truth, each titled with its label and PSNR there.
+  """
+  rows = list(cfgs)
+  _, _, scene = run_lib.load_run(os.path.join(workdir, rows[0]))
   names = scene.test.names
   psnr = {k: np.array([m["test"]["per_image"][n]["psnr"] for n in names])
           for k, m in metrics.items()}
-  # The test view where guidance changes PSNR most, to show what it does.
-  view = int(np.argmax(np.abs(psnr["guided"] - psnr["vanilla"])))
+  view = int(np.argmax(np.abs(psnr[rows[1]] - psnr[rows[0]])))
   stem = os.path.splitext(os.path.basename(names[view]))[0]
   renders = [images_lib.read_image(os.path.join(
-      workdir, k, run_lib.TEST_RENDERS, stem + ".png")) for k in cfgs]
-  label = "guided, " + ("dense CLIP" if use_clip else "ORACLE-PIXEL")
+      workdir, k, run_lib.TEST_RENDERS, stem + ".png")) for k in rows]
   plots.side_by_side(
       renders + [np.asarray(scene.test.images[view])],
-      [f"vanilla 3DGS: {psnr['vanilla'][view]:.2f} dB",
-       f"{label}: {psnr['guided'][view]:.2f} dB", "ground truth"],
+      [f"{_short_label(cfgs[k].semantic)}: {psnr[k][view]:.2f} dB"
+       for k in rows] + ["ground truth"],
       os.path.join(workdir, "comparison.png"))
   summary = {
       k: {"label": run_lib.semantic_label(cfgs[k].semantic),
@@ -180,9 +199,8 @@ def run(cd: ml_collections.ConfigDict, workdir: str, *,
   plan = []    # (benchmark name, row, tau or None, Config)
   for bench, name in zip(benchmarks, names):
     for row in rows:
-      extra = ({"semantic": {"scorer": "clip"}}
-               if kind == "demo" and row != table.VANILLA and clip_weights
-               else {})
+      extra = (sweep.clip_overrides.get(row, {}).to_dict()
+               if kind == "demo" and clip_weights else {})
       cfg = row_config(cd, row, bench, **extra)
       plan.append((name, row, None, cfg))
     if kind == "tau_sweep":
@@ -211,8 +229,7 @@ def run(cd: ml_collections.ConfigDict, workdir: str, *,
                        f"({failed[0].error}); fix the cause and rerun to "
                        "resume")
     return _demo_outputs(workdir, {r.row: r.cfg for r in results},
-                         {r.row: r.metrics for r in results},
-                         bool(clip_weights))
+                         {r.row: r.metrics for r in results})
   collected = _COLLECT[kind](results, settings, out, sweep.to_dict())
   if failed:
     names = ", ".join(f"{r.scene}/{r.row}" for r in failed)

@@ -26,6 +26,7 @@ from clipgs_jax import guidance
 from clipgs_jax import losses
 from clipgs_jax import project
 from clipgs_jax import rasterize
+from clipgs_jax import residual
 from clipgs_jax import train
 from clipgs_jax.data import scene as scene_lib
 
@@ -341,11 +342,16 @@ def semantic_overhead(scene_path: str, downscale: int, *,
   """Step time of semantic guidance against the vanilla step.
 
   Times, in one process on the same state and views, the jitted train step
-  of: vanilla (guidance off); oracle (oracle scorer every step, opacity
-  loss on; scenes with masks only); clip/k=K (CLIP scorer with random
-  weights, scoring every K-th step). Each is compiled and warmed up over
-  one full scoring cycle, then timed round-robin (one step each in turn,
-  so a change in load shifts them all alike) for `steps` steps.
+  of: vanilla (guidance off); oracle and oracle_pixel (the ground-truth
+  masks as the paper's image-level score, and as a per-pixel map with loss
+  masking; scenes with masks only); residual and residual+features (the
+  residual map with loss masking, per pixel and voted over the photos'
+  feature regions; the regions are computed before timing, once per
+  photo); clip/k=K (CLIP scorer with random weights, scoring every K-th
+  step). Every guided variant scores every step with the opacity loss on.
+  Each is compiled and warmed up over one full scoring cycle, then timed
+  round-robin (one step each in turn, so a change in load shifts them all
+  alike) for `steps` steps.
 
   Returns:
     One dict per variant: mean wall / CPU ms per step and the overhead
@@ -372,6 +378,15 @@ def semantic_overhead(scene_path: str, downscale: int, *,
   if scene.train.masks is not None:
     cfg = dataclasses.replace(base, semantic=sem)
     variants["oracle"] = (cfg, guidance.make_scorer(cfg.semantic, scene))
+    cfg = dataclasses.replace(base, semantic=dataclasses.replace(
+        sem, evidence="pixel", loss_masking=True))
+    variants["oracle_pixel"] = (cfg, guidance.make_scorer(cfg.semantic,
+                                                          scene))
+  for name, net in (("residual", ""), ("residual+features", "alex")):
+    cfg = dataclasses.replace(base, semantic=dataclasses.replace(
+        sem, scorer="residual", evidence="pixel", loss_masking=True,
+        features=net))
+    variants[name] = (cfg, guidance.make_scorer(cfg.semantic, scene))
   for k in score_every:
     cfg = dataclasses.replace(base, semantic=dataclasses.replace(
         sem, scorer="clip", clip_variant=clip_variant, score_every=k))
@@ -383,6 +398,8 @@ def semantic_overhead(scene_path: str, downscale: int, *,
     fn = jax.jit(lambda s, b, sc, cfg=cfg: train.train_step(s, b, sc,
                                                             cfg=cfg))
     state = jax.tree.map(jnp.copy, state0)
+    if cfg.semantic.uses_residual:
+      state = state.replace(maps=residual.ResidualState.initial())
     tic = time.perf_counter()
     state, _ = jax.block_until_ready(fn(state, batch, scorer))
     compile_s[name] = time.perf_counter() - tic

@@ -212,20 +212,29 @@ class EndToEndTest(absltest.TestCase):
     cd.gaussians.update(smoke.gaussians)
     cd.train.steps = 10
     # demo.py asks for 10 curve points, i.e. a test evaluation at every one
-    # of these 10 steps in both rows: most of this test's time, and not
+    # of these 10 steps in every row: most of this test's time, and not
     # what it checks.
     cd.eval.curve_points = 1
     root = self.create_tempdir().full_path
     summary = sweep.run(cd, root)
     self.assertEqual(sorted(os.listdir(root)),
-                     ["comparison.json", "comparison.png", "guided",
-                      "vanilla"])
-    self.assertIn("ORACLE-PIXEL", summary["guided"]["label"])
+                     ["comparison.json", "comparison.png",
+                      "oracle_pixel_masked", "residual", "vanilla"])
     self.assertEqual(summary["vanilla"]["label"], "vanilla 3DGS")
-    with open(os.path.join(root, "guided", "config.json")) as f:
-      guided = json.load(f)
-    self.assertEqual(guided["train"]["checkpoint_every"], 10)
-    self.assertTrue(guided["semantic"]["loss_masking"])
+    # The row the demo shows needs nothing but the photos; the reference
+    # says it reads the ground truth.
+    self.assertIn("residual map", summary["residual"]["label"])
+    self.assertNotIn("ORACLE", summary["residual"]["label"])
+    self.assertIn("ORACLE-PIXEL", summary["oracle_pixel_masked"]["label"])
+    scorers = {}
+    for row in ("residual", "oracle_pixel_masked"):
+      with open(os.path.join(root, row, "config.json")) as f:
+        cfg = json.load(f)
+      self.assertEqual(cfg["train"]["checkpoint_every"], 10)
+      self.assertTrue(cfg["semantic"]["loss_masking"])
+      scorers[row] = cfg["semantic"]["scorer"]
+    self.assertEqual(scorers, {"residual": "residual",
+                               "oracle_pixel_masked": "oracle"})
 
 
 if __name__ == "__main__":
