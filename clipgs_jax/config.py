@@ -187,8 +187,9 @@ class SemanticConfig:
   residual_quantile: float = 0.7  # inlier share (SLS 0.7; RobustNeRF 0.8)
   residual_decay: float = 0.95  # histogram decay per step (RobustNeRF: 0)
   residual_warmup: float = 3e-3  # rate of the Bernoulli warm-up; 0: none
-  residual_median_factor: float = 0.0  # threshold >= this x the median
-  #   residual (0: the quantile alone)
+  residual_median_factor: float = 3.0  # threshold >= this x the median
+  #   residual (0: the quantile alone; BUILD_NOTES.md, "Transient masks
+  #   without an oracle": a quantile masks its share of a clean view too)
   features: str = ""           # residual map: "" per pixel, or "alex" /
   #   "vgg": each photo's ImageNet-feature regions (features.py) take the
   #   majority verdict of the residual test inside them

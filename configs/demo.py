@@ -22,10 +22,6 @@ from clipgs_jax import config as config_lib
 from clipgs_jax.data import default_scene
 
 CURVE_POINTS = 10     # test PSNR every steps // 10
-# The residual row's threshold floor (semantic.residual_median_factor);
-# measured on this scene and the bird benchmarks in BUILD_NOTES.md,
-# "Transient masks without an oracle".
-MEDIAN_FACTOR = 3.0
 
 
 def get_config():
@@ -45,8 +41,7 @@ def get_config():
           "vanilla": {},
           # SpotLessSplats' loss: masked L1 without the SSIM term.
           "residual": {
-              "semantic": {"scorer": "residual",
-                           "residual_median_factor": MEDIAN_FACTOR, **pixel},
+              "semantic": {"scorer": "residual", **pixel},
               "train": {"lambda_dssim": 0.0}},
           "oracle_pixel_masked": {"semantic": {"scorer": "oracle", **pixel}},
       },
