@@ -190,6 +190,8 @@ class SemanticConfig:
   residual_median_factor: float = 3.0  # threshold >= this x the median
   #   residual (0: the quantile alone; BUILD_NOTES.md, "Transient masks
   #   without an oracle": a quantile masks its share of a clean view too)
+  residual_min_threshold: float = 0.0  # threshold >= this mean absolute
+  #   colour error (0: none)
   features: str = ""           # residual map: "" per pixel, or "alex" /
   #   "vgg": each photo's ImageNet-feature regions (features.py) take the
   #   majority verdict of the residual test inside them
@@ -508,6 +510,9 @@ def _residual_problems(sem: SemanticConfig) -> list[str]:
   if not sem.residual_median_factor >= 0:
     problems.append(f"residual_median_factor={sem.residual_median_factor} "
                     "must be >= 0")
+  if not 0.0 <= sem.residual_min_threshold < 1.0:
+    problems.append(f"residual_min_threshold={sem.residual_min_threshold} "
+                    "is not in [0, 1)")
   if not sem.residual_warmup >= 0:
     problems.append(f"residual_warmup={sem.residual_warmup} must be >= 0")
   return problems

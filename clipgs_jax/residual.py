@@ -72,7 +72,8 @@ def _quantile(cumulative: jax.Array, q: float) -> jax.Array:
 
 
 def update(state: ResidualState, res: jax.Array, *, quantile: float,
-           decay: float, median_factor: float = 0.0) -> ResidualState:
+           decay: float, median_factor: float = 0.0,
+           minimum: float = 0.0) -> ResidualState:
   """Adds one step's residuals; the threshold becomes their quantile.
 
   Args:
@@ -85,6 +86,8 @@ def update(state: ResidualState, res: jax.Array, *, quantile: float,
       median (0: the quantile alone). A quantile calls the same share of
       pixels outliers whether or not the views hold transients; the floor
       keeps pixels whose residual is ordinary for the current fit.
+    minimum: the threshold is at least this (a mean absolute colour
+      error in [0, 1]; 0: no absolute floor).
   """
   counts = jnp.zeros((HISTOGRAM_BINS,), jnp.float32).at[
       _bins(res).reshape(-1)].add(1.0)
@@ -94,6 +97,8 @@ def update(state: ResidualState, res: jax.Array, *, quantile: float,
   if median_factor > 0:
     threshold = jnp.maximum(threshold,
                             median_factor * _quantile(cumulative, 0.5))
+  if minimum > 0:
+    threshold = jnp.maximum(threshold, jnp.float32(minimum))
   return ResidualState(histogram=histogram, threshold=threshold)
 
 

@@ -222,7 +222,8 @@ def train_step(state: state_lib.TrainState, batch: Batch, scorer=None, *,
     maps = residual_lib.update(maps, rmap.residual,
                                quantile=sem.residual_quantile,
                                decay=sem.residual_decay,
-                               median_factor=sem.residual_median_factor)
+                               median_factor=sem.residual_median_factor,
+                               minimum=sem.residual_min_threshold)
     due = guidance.scores_due(step, sem)
     semantic_stats = semantic_lib.accumulate_pixel(
         state.semantic, probe_grad, out.contribution, out.visible, due)

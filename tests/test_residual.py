@@ -59,6 +59,16 @@ class QuantileTest(parameterized.TestCase):
                           quantile=0.7, decay=0.9, median_factor=1.0)
     self.assertEqual(float(low.threshold), float(plain.threshold))
 
+  def test_absolute_floor(self):
+    res = jnp.asarray(np.linspace(0.01, 0.10, 100).reshape(10, 10),
+                      jnp.float32)
+    floored = residual.update(residual.ResidualState.initial(), res,
+                              quantile=0.7, decay=0.9, minimum=0.25)
+    self.assertAlmostEqual(float(floored.threshold), 0.25, delta=1e-6)
+    under = residual.update(residual.ResidualState.initial(), res,
+                            quantile=0.7, decay=0.9, minimum=0.01)
+    self.assertAlmostEqual(float(under.threshold), 0.073, delta=2e-3)
+
   def test_initial_threshold_keeps_every_pixel(self):
     state = residual.ResidualState.initial()
     res = jnp.full((8, 8), 0.99)
