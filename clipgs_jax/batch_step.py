@@ -141,9 +141,9 @@ def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
       valid = sharding.valid_mask(size, height, width)
       canvas, w, h = (size, valid), size[0], size[1]
     view_scorer = sharding.scorer_at(scorer, i)
-    vp = view_lib.render_and_grad(state, view_scorer, cfg, view=pos, cam=cam,
-                         target=target, bg=bg, degree=degree, key=key,
-                         canvas=canvas)
+    vp = view_lib.render_and_grad(
+        state, view_scorer, cfg, view=pos, cam=cam, target=target, bg=bg,
+        degree=degree, key=key, canvas=canvas)
     proj = jax.lax.stop_gradient(vp.proj)
     seen = densify.on_screen(proj, w, h) & state.alive
     dens = densify.accumulate(state_lib.DensifyStats.zeros(capacity),

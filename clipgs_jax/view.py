@@ -105,11 +105,12 @@ class ViewPass(NamedTuple):
   evidence_map: jax.Array | None
 
 
-def render_and_grad(state: state_lib.TrainState, scorer, cfg: config_lib.Config,
-              *, view: jax.Array, cam: camera_lib.Camera, target: jax.Array,
-              bg: jax.Array, degree: jax.Array, key: jax.Array,
-              canvas: tuple[jax.Array, jax.Array] | None = None
-              ) -> ViewPass:
+def render_and_grad(state: state_lib.TrainState, scorer,
+                    cfg: config_lib.Config, *, view: jax.Array,
+                    cam: camera_lib.Camera, target: jax.Array,
+                    bg: jax.Array, degree: jax.Array, key: jax.Array,
+                    canvas: tuple[jax.Array, jax.Array] | None = None
+                    ) -> ViewPass:
   """Renders one training view and differentiates its loss.
 
   Renders the view (project + rasterize, with a zero offset on the splat
@@ -189,7 +190,7 @@ def render_and_grad(state: state_lib.TrainState, scorer, cfg: config_lib.Config,
 
 
 def reproduced_evidence(due, proj, cam, bg, cfg, evidence_map, image,
-                         target):
+                        target):
   """float [C], sum_i w_ij m_i a_i with a = semantic.agreement(render, photo).
 
   The agreement needs the finished render, so this is a second forward
