@@ -20,7 +20,8 @@ then the step combines them as one optimisation step:
     densification, SH degree, the semantic schedule) counts optimisation
     steps.
 B = 1 on photos of one size does not come here: train.train_step is that
-step, unchanged.
+step, unchanged. Its equality tests and measured cost: BUILD_NOTES.md,
+"Multi-device training".
 """
 
 import functools

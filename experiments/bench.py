@@ -12,7 +12,7 @@ features or views.
   python experiments/bench.py --bench=features --bench_scene=DIR
       [--bench_downscale=8 --repeats=21]
   python experiments/bench.py --bench=views --bench_scene=DIR
-      [--bench_downscale=4 --views=1x1,2x1,4x1,2x2,4x2 --host_devices=2]
+      [--bench_downscale=4 --batch_devices=1x1,2x1,4x1,2x2,4x2 --host_devices=2]
 
 rasterizer: custom VJP against plain autodiff of the forward, per (N, image
   size, variant), on Gaussians scattered in the view frustum.
@@ -117,9 +117,9 @@ _SCORE_EVERY = flags.DEFINE_list("score_every", ["1", "10", "20"],
 _TIMED_STEPS = flags.DEFINE_integer("timed_steps", 40, "semantic / views: "
                                     "timed steps per variant (semantic: a "
                                     "multiple of every --score_every).")
-_VIEWS = flags.DEFINE_list("views", ["1x1", "2x1", "4x1", "2x2", "4x2"],
-                           "views: BxD variants, batch size B on D devices "
-                           "(D divides B).")
+_BATCH_DEVICES = flags.DEFINE_list(
+    "batch_devices", ["1x1", "2x1", "4x1", "2x2", "4x2"],
+    "views: BxD variants, batch size B on D devices (D divides B).")
 _HOST_DEVICES = flags.DEFINE_integer(
     "host_devices", 2, "views: CPU devices the host is split into (XLA's "
     "forced host devices); a GPU machine uses its GPUs.")
@@ -149,9 +149,9 @@ flags.register_validator(
 flags.register_validator(
     "sizes", _sizes_ok, "--sizes takes WIDTHxHEIGHT items, e.g. 256x256")
 flags.register_validator(
-    "views", lambda v: _sizes_ok(v) and all(
+    "batch_devices", lambda v: _sizes_ok(v) and all(
         int(x.split("x")[0]) % int(x.split("x")[1]) == 0 for x in v),
-    "--views takes BxD items with D dividing B, e.g. 4x2")
+    "--batch_devices takes BxD items with D dividing B, e.g. 4x2")
 
 
 def _value(name: str, flag):
@@ -218,7 +218,8 @@ def _results():
     cli.require_file("bench_scene", _SCENE.value)
     yield from batch_timing.views_per_second(
         _SCENE.value, _value("bench_downscale", _DOWNSCALE),
-        variants=[tuple(int(x) for x in v.split("x")) for v in _VIEWS.value],
+        variants=[tuple(int(x) for x in v.split("x")) for v in
+                  _BATCH_DEVICES.value],
         steps=_TIMED_STEPS.value,
         num_gaussians=_ints(_value("num_gaussians", _NUM))[0],
         render=config_lib.RenderConfig(

@@ -42,7 +42,8 @@ _CAMERA_FIELDS = ("rotation", "translation", "fx", "fy", "cx", "cy")
 # canvas costs its area in every render and in device memory for every
 # photo, so a split whose canvas exceeds this many times the mean photo's
 # area is refused (portrait and landscape photos of one camera are 1.33x
-# at 4:3, 1.78x at 16:9; a thumbnail among full-size photos is far more).
+# at 4:3, 1.78x at 16:9; a thumbnail among full-size photos is far more;
+# BUILD_NOTES.md, "Multi-device training").
 MAX_CANVAS_WASTE = 4.0
 
 
