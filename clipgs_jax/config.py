@@ -97,6 +97,8 @@ class DensifyConfig:
 class TrainConfig:
   """The training loop."""
   steps: int = 30_000          # optimisation steps (3DGS: 30k)
+  batch_size: int = 1          # B views per step, loss = their mean; B > 1
+  #   spreads them over every device (B a multiple of the device count)
   seed: int = 0                # PRNG seed (views, backgrounds, splits)
   lambda_dssim: float = 0.2    # loss = (1 - l) L1 + l (1 - SSIM)
   random_background: bool = False  # a random colour behind splats per step
@@ -546,6 +548,8 @@ def check(values: dict | ml_collections.ConfigDict) -> Config:
     raise app.UsageError(str(e)) from e
   t = cfg.train
   _positive(t.steps > 0, "train.steps", t.steps, "must be positive")
+  _positive(t.batch_size >= 1, "train.batch_size", t.batch_size,
+            "must be positive (1: one view per step)")
   _positive(t.checkpoint_every >= 0, "train.checkpoint_every",
             t.checkpoint_every, "must be >= 0 (0: only at the end)")
   _positive(cfg.render.tile_budget > 0, "render.tile_budget",

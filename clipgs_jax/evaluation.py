@@ -12,6 +12,7 @@ from clipgs_jax import config as config_lib
 from clipgs_jax import gaussians
 from clipgs_jax import metrics as metrics_lib
 from clipgs_jax import rasterize
+from clipgs_jax.data import scene as scene_lib
 
 
 # A pixel is predicted transient where the flagged Gaussians cover more than
@@ -32,16 +33,24 @@ def renders(params: gaussians.GaussianParams, alive, views,
             cfg: config_lib.Config) -> Iterator[tuple[jax.Array, ...]]:
   """Renders each view of `views` with all SH bands on cfg.train.background.
 
+  A view on a larger canvas (data.scene.Views.sizes) is rendered on it and
+  cut to its photo: a pixel's colour does not depend on the others, so the
+  cut render is the photo-sized render.
+
   Yields:
-    (float32 [H, W, 3] colour clipped to [0, 1], float32 [H, W] alpha,
-    int32 [] tile-list entries dropped) per view, in order.
+    (float32 [h, w, 3] colour clipped to [0, 1], float32 [h, w] alpha,
+    int32 [] tile-list entries dropped) per view, in order; (w, h) is the
+    view's photo size (scene_lib.photo_size).
   """
   render = _render_fn(cfg.render)
   bg = jnp.asarray(cfg.train.background, jnp.float32)
   degree = jnp.asarray(params.sh_degree, jnp.int32)
   cams = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), views.cameras)
   for i in range(len(views.images)):
-    yield render(params, alive, camera_lib.camera_at(cams, i), bg, degree)
+    image, alpha, dropped = render(params, alive,
+                                   camera_lib.camera_at(cams, i), bg, degree)
+    yield (scene_lib.crop(views, i, image), scene_lib.crop(views, i, alpha),
+           dropped)
 
 
 @functools.lru_cache(maxsize=None)
@@ -64,7 +73,8 @@ def evaluate(params: gaussians.GaussianParams, alive, views,
   Returns:
     dict with per-image lists "psnr" (and "ssim", "lpips" unless
     psnr_only), their means "mean/<name>", and "images" (float32
-    [V, H, W, 3] numpy) when keep_images.
+    [V, H, W, 3] numpy; a list of [h, w, 3] when the photos differ in
+    size) when keep_images.
   """
   per_image: dict[str, list[float]] = {"psnr": []}
   if not psnr_only:
@@ -73,7 +83,8 @@ def evaluate(params: gaussians.GaussianParams, alive, views,
       per_image["lpips"] = []
   images = []
   for i, (pred, _, _) in enumerate(renders(params, alive, views, cfg)):
-    target = jnp.asarray(views.images[i], jnp.float32)
+    target = jnp.asarray(scene_lib.crop(views, i, views.images[i]),
+                         jnp.float32)
     if psnr_only:
       values = {"psnr": metrics_lib.psnr(pred, target)}
     else:
@@ -86,9 +97,12 @@ def evaluate(params: gaussians.GaussianParams, alive, views,
   for name, vals in per_image.items():
     result[f"mean/{name}"] = float(np.mean(vals)) if vals else float("nan")
   if keep_images:
-    result["images"] = (np.stack(images) if images else
-                        np.zeros((0, views.cameras.height,
-                                  views.cameras.width, 3), np.float32))
+    if getattr(views, "sizes", None) is not None:
+      result["images"] = images
+    else:
+      result["images"] = (np.stack(images) if images else
+                          np.zeros((0, views.cameras.height,
+                                    views.cameras.width, 3), np.float32))
   return result
 
 
@@ -119,8 +133,9 @@ def iou_summary(names, alphas, masks) -> dict:
 
   Args:
     names: V view names.
-    alphas: float [V, H, W], rendered alpha of the flagged Gaussians.
-    masks: bool [V, H, W], ground-truth transient masks.
+    alphas: V float [H, W], rendered alpha of the flagged Gaussians.
+    masks: V bool [H, W], ground-truth transient masks (each the shape of
+      its alpha).
 
   Returns:
     {"mean": float, or None if no view is scored, "per_view": {name: IoU
@@ -152,8 +167,9 @@ def transient_mask_iou(params: gaussians.GaussianParams, views,
   if views.masks is None:
     return None
   num = int(np.shape(params.means)[0])
+  masks = [scene_lib.crop(views, i, m) for i, m in enumerate(views.masks)]
   if num == 0:
-    alphas = np.zeros(np.shape(views.masks), np.float32)
+    alphas = [np.zeros(np.shape(m), np.float32) for m in masks]
   else:
     # Pad to a power of two so runs with similar counts share one compile.
     capacity = 1 << max(8, (num - 1).bit_length())
@@ -161,9 +177,9 @@ def transient_mask_iou(params: gaussians.GaussianParams, views,
         lambda x: np.concatenate(
             [x, np.zeros((capacity - num,) + x.shape[1:], x.dtype)]), params)
     alive = np.arange(capacity) < num
-    alphas = np.stack([np.asarray(a) for _, a, _ in
-                       renders(padded, alive, views, cfg)])
-  return iou_summary(views.names, alphas, views.masks) | {
+    alphas = [np.asarray(a) for _, a, _ in
+              renders(padded, alive, views, cfg)]
+  return iou_summary(views.names, alphas, masks) | {
       "num_gaussians": num}
 
 
@@ -218,7 +234,9 @@ def mask_quality(params: gaussians.GaussianParams, alive, stats, scorer,
     m = np.asarray(fn(params, alive, stats, scorer, jnp.int32(i),
                       camera_lib.camera_at(cams, i),
                       jnp.asarray(views.images[i], jnp.float32), degree))
-    counts = _confusion(m > MAP_THRESHOLD, np.asarray(views.masks[i], bool))
+    counts = _confusion(scene_lib.crop(views, i, m) > MAP_THRESHOLD,
+                        scene_lib.crop(views, i, np.asarray(views.masks[i],
+                                                            bool)))
     totals += counts
     per_view[name] = _scores(counts)
   return _scores(totals) | {"per_view": per_view,

@@ -41,6 +41,7 @@ from clipgs_jax import densify
 from clipgs_jax import map_sources
 from clipgs_jax import semantic
 from clipgs_jax import state as state_lib
+from clipgs_jax.data import scene as scene_lib
 
 # Keys of the per-step scores in the train step's metrics: image evidence
 # logs the view's scores, pixel evidence the mean of the view's map. Beside
@@ -79,9 +80,11 @@ class PixelMapScorer:
   """Per-pixel transient probability maps of the training views.
 
   Attributes:
-    maps: float32 [V, H, W] in [0, 1], one map per training view.
+    maps: float32 [V, H, W] in [0, 1], one map per training view (0 outside
+      a photo on a larger canvas).
   """
   maps: jax.Array
+  per_view = ("maps",)     # fields with one entry per view (sharding.py)
 
   def score_map(self, view: jax.Array) -> jax.Array:
     """float32 [H, W], the map of training view `view`."""
@@ -98,14 +101,19 @@ class OracleScorer:
   Attributes:
     masks: bool [V, H, W], True = transient pixel, per training view.
     saturation: area fraction at which the score reaches 1.
+    areas: float32 [V], each photo's pixels when the photos lie on a
+      larger canvas (the area fraction is of the photo), else None.
   """
   masks: jax.Array
   saturation: float = flax.struct.field(pytree_node=False)
+  areas: jax.Array | None = None
+  per_view = ("masks", "areas")
 
   def score(self, image: jax.Array, view: jax.Array) -> dict[str, jax.Array]:
     del image  # a perfect detector does not need to look
+    area = None if self.areas is None else self.areas[view]
     return {"s_hat_d": semantic.oracle_score(self.masks[view],
-                                             self.saturation),
+                                             self.saturation, area),
             "s_hat_s": jnp.float32(jnp.nan)}
 
 
@@ -134,22 +142,31 @@ def make_scorer(sem: config_lib.SemanticConfig, scene, *,
           "masks, but this scene has none: add masks/<image stem>.png (white "
           "= transient) for the training views, or use "
           "--config.semantic.scorer=clip|off.")
+    sizes = getattr(scene.train, "sizes", None)
     if sem.scorer == "uniform":
-      return uniform_control(masks)
+      return uniform_control(masks, sizes)
     if sem.scorer == "oracle_patch":
-      return _pixel_source(map_sources.oracle_patch_maps(
-          masks, sem.dense_input_size // ORACLE_PATCH_SIZE), sem, scene)
+      grid = sem.dense_input_size // ORACLE_PATCH_SIZE
+      maps = (map_sources.oracle_patch_maps(masks, grid) if sizes is None
+              else jnp.asarray(per_photo(
+                  lambda m: map_sources.oracle_patch_maps(m[None], grid)[0],
+                  masks, sizes)))
+      return _pixel_source(maps, sem, scene)
     if sem.localized:
       return PixelMapScorer(maps=jnp.asarray(masks, jnp.float32))
-    return OracleScorer(masks=jnp.asarray(masks, bool),
-                        saturation=sem.oracle_saturation)
+    return OracleScorer(
+        masks=jnp.asarray(masks, bool), saturation=sem.oracle_saturation,
+        areas=None if sizes is None else jnp.asarray(
+            np.prod(sizes, axis=-1), jnp.float32))
   # Only here is CLIP imported.
   from clipgs_jax.clip import scorer as clip_scorer  # pylint: disable=g-import-not-at-top
   if sem.localized:
     dense = clip_scorer.make_dense(sem, weights_path=clip_weights,
                                    clip_params=clip_params,
                                    input_size=sem.dense_input_size)
-    return _pixel_source(dense_maps(dense, scene.train.images), sem, scene)
+    return _pixel_source(
+        dense_maps(dense, scene.train.images,
+                   getattr(scene.train, "sizes", None)), sem, scene)
   return clip_scorer.make(sem, weights_path=clip_weights,
                           clip_params=clip_params)
 
@@ -167,12 +184,29 @@ def _residual_source(maps, sem: config_lib.SemanticConfig, scene
   sem.features names a backbone."""
   if not sem.features:
     return map_sources.ResidualSource(semantic=maps)
-  labels, num = map_sources.feature_regions(scene.train.images, sem.features)
+  labels, num = map_sources.feature_regions(
+      scene.train.images, sem.features, getattr(scene.train, "sizes", None))
   return map_sources.ResidualSource(semantic=maps, labels=labels,
                                     num_regions=num)
 
 
-def uniform_control(masks) -> PixelMapScorer:
+def per_photo(fn, arrays, sizes, fill=0) -> np.ndarray:
+  """fn on each view's photo, put back on the canvas (`fill` outside).
+
+  Args:
+    fn: [h, w, ...] -> [h, w, ...].
+    arrays: [V, H, W, ...] on the views' canvas.
+    sizes: data.scene.Views.sizes: int [V, 2] photo sizes, or None (each
+      view's array whole).
+  """
+  if sizes is None:
+    return np.stack([np.asarray(fn(a)) for a in arrays])
+  return scene_lib.on_canvas(
+      [np.asarray(fn(a[:h, :w])) for a, (w, h) in zip(arrays, sizes)],
+      sizes, fill)
+
+
+def uniform_control(masks, sizes=None) -> PixelMapScorer:
   """The control for localized evidence: no location, the same total.
 
   Every pixel of every view gets the masks' mean transient fraction, so the
@@ -183,21 +217,32 @@ def uniform_control(masks) -> PixelMapScorer:
 
   Args:
     masks: bool [V, H, W], the training views' ground-truth masks.
+    sizes: int [V, 2] of photos on a larger canvas (data.scene.Views.sizes)
+      or None; the fraction is of the photos' pixels, 0 outside them.
   """
-  fraction = float(np.mean(np.asarray(masks, bool)))
-  return PixelMapScorer(maps=jnp.full(np.shape(masks), fraction, jnp.float32))
+  masks = np.asarray(masks, bool)
+  if sizes is None:
+    fraction = float(np.mean(masks))
+    return PixelMapScorer(maps=jnp.full(np.shape(masks), fraction,
+                                        jnp.float32))
+  inside = per_photo(lambda m: np.ones(m.shape, bool), masks, sizes, False)
+  fraction = float(np.sum(masks) / np.sum(inside))
+  return PixelMapScorer(maps=jnp.asarray(inside * fraction, jnp.float32))
 
 
-def dense_maps(dense_scorer, images) -> jax.Array:
+def dense_maps(dense_scorer, images, sizes=None) -> jax.Array:
   """float32 [V, H, W]: a dense scorer's map of every training photo.
 
   Args:
     dense_scorer: an object with `score_map(image, view) -> [H, W]`.
     images: float [V, H, W, 3] in [0, 1], the training photos.
+    sizes: int [V, 2] of photos on a larger canvas (data.scene.Views.sizes)
+      or None: each photo is scored alone, its map 0 outside it.
   """
   fn = jax.jit(lambda im: dense_scorer.score_map(im, jnp.int32(0)))
-  maps = [np.asarray(fn(jnp.asarray(im, jnp.float32))) for im in images]
-  return jnp.asarray(np.stack(maps), jnp.float32)
+  maps = per_photo(lambda im: fn(jnp.asarray(im, jnp.float32)), images,
+                   sizes)
+  return jnp.asarray(maps, jnp.float32)
 
 
 def check_scorer(sem: config_lib.SemanticConfig, scorer, caller: str

@@ -25,6 +25,7 @@ from clipgs_jax import config as config_lib
 from clipgs_jax import densify as densify_lib
 from clipgs_jax import evaluation
 from clipgs_jax import guidance
+from clipgs_jax import sharding
 from clipgs_jax import state as state_lib
 from clipgs_jax import sh
 
@@ -117,8 +118,9 @@ def _every(step: int, every: int) -> bool:
 
 
 def eval_due(step: int, ctx: Context) -> bool:
-  """Evaluate after `step` steps: every eval_every and at the last step."""
-  return len(ctx.scene.test.images) > 0 and (
+  """Evaluate after `step` steps: every eval_every and at the last step
+  (in a multi-host run, only the process that writes the run folder)."""
+  return sharding.is_writer() and len(ctx.scene.test.images) > 0 and (
       step == ctx.cfg.train.steps or _every(step, ctx.cfg.train.eval_every))
 
 
@@ -158,8 +160,11 @@ def eval_point(state: state_lib.TrainState, flog: FitLog, step: int,
   """Test PSNR of the current model, appended to the curve; with pixel
   evidence on a scene with masks, also the quality of the maps the loss
   uses (evaluation.mask_quality)."""
-  result = evaluation.evaluate(state.params, state.alive, ctx.scene.test,
-                               ctx.cfg, psnr_only=True)
+  # On one device's copy: a replicated state would render on every device.
+  params, alive, maps, done = sharding.local(
+      (state.params, state.alive, state.maps, state.step))
+  result = evaluation.evaluate(params, alive, ctx.scene.test, ctx.cfg,
+                               psnr_only=True)
   _log.info("step %d: test PSNR %.3f after %.1f s of training, %d alive",
             step, result["mean/psnr"], flog.train_seconds,
             int(jnp.sum(state.alive)))
@@ -167,11 +172,10 @@ def eval_point(state: state_lib.TrainState, flog: FitLog, step: int,
            "test_psnr": result["mean/psnr"]}
   quality = flog.mask_quality
   if ctx.cfg.semantic.localized and ctx.scene.train.masks is not None:
-    degree = sh.active_degree(state.step, ctx.cfg.densify.sh_degree_every,
+    degree = sh.active_degree(done, ctx.cfg.densify.sh_degree_every,
                               ctx.cfg.gaussians.sh_degree)
-    quality = evaluation.mask_quality(
-        state.params, state.alive, state.maps, ctx.scorer, ctx.scene.train,
-        ctx.cfg, degree)
+    quality = evaluation.mask_quality(params, alive, maps, ctx.scorer,
+                                      ctx.scene.train, ctx.cfg, degree)
     point.update({f"mask_{k}": quality[k]
                   for k in ("precision", "recall", "iou")})
     _log.info("step %d: transient maps vs ground truth: precision %s, "
@@ -204,15 +208,18 @@ def flush_scores(flog: FitLog, ctx: Context) -> FitLog:
     return flog
   keys = guidance.per_step_value_keys(ctx.cfg.semantic)
   rows = []
-  for step, values in jax.device_get(flog.pending):
-    if not values["scored"]:
-      continue
-    check_finite(step, {k: float(values[k]) for k in keys
-                        if k not in guidance.OPTIONAL_SCORE_KEYS},
-                 f"the {ctx.cfg.semantic.scorer!r} scorer returned it for "
-                 f"training view {int(values['view'])}")
-    rows.append({"step": step, "view": int(values["view"])} | {
-        k: _finite_or_none(values[k]) for k in keys})
+  for step, batch in jax.device_get(flog.pending):
+    # One row per view (a step of batch_step has B of each value).
+    for i in range(np.size(batch["view"])):
+      values = {k: np.ravel(v)[i] for k, v in batch.items()}
+      if not values["scored"]:
+        continue
+      check_finite(step, {k: float(values[k]) for k in keys
+                          if k not in guidance.OPTIONAL_SCORE_KEYS},
+                   f"the {ctx.cfg.semantic.scorer!r} scorer returned it "
+                   f"for training view {int(values['view'])}")
+      rows.append({"step": step, "view": int(values["view"])} | {
+          k: _finite_or_none(values[k]) for k in keys})
   return dataclasses.replace(flog, scores=flog.scores + rows, pending=[])
 
 
@@ -322,11 +329,13 @@ def log(flog: FitLog, step: int, ctx: Context) -> FitLog:
 
 def save(state: state_lib.TrainState, flog: FitLog, ctx: Context
          ) -> FitLog:
-  """Writes the checkpoint with the run's record (scores fetched first)."""
+  """Writes the checkpoint with the run's record (scores fetched first);
+  in a multi-host run only the process that writes the run folder."""
   flog = flush_scores(flog, ctx)
-  checkpoint.save(ctx.ckpt_path, state, ctx.cfg, extra={
-      "curve": flog.curve, "train_seconds": flog.train_seconds,
-      "scores": flog.scores, "prune_events": flog.prune_events})
+  if sharding.is_writer():
+    checkpoint.save(ctx.ckpt_path, state, ctx.cfg, extra={
+        "curve": flog.curve, "train_seconds": flog.train_seconds,
+        "scores": flog.scores, "prune_events": flog.prune_events})
   return flog
 
 

@@ -109,7 +109,8 @@ def ssim(a: jax.Array, b: jax.Array, padding: str = "valid") -> jax.Array:
 
 
 def photometric(pred: jax.Array, target: jax.Array, lambda_dssim: float,
-                weight: jax.Array | None = None
+                weight: jax.Array | None = None,
+                valid: jax.Array | None = None
                 ) -> tuple[jax.Array, dict[str, jax.Array]]:
   """3DGS loss (1 - lambda) L1 + lambda (1 - SSIM), SSIM zero-padded "same".
 
@@ -121,14 +122,23 @@ def photometric(pred: jax.Array, target: jax.Array, lambda_dssim: float,
       and where the weight is 0 neither term reads `target` nor sends a
       gradient to `pred`. None is the unweighted 3DGS loss, computed
       exactly as without the argument.
+    valid: None, or float [H, W] in {0, 1}: the photo fills only the valid
+      pixels of a larger canvas. Both images are 0 outside them, as the
+      "same" SSIM zero-pads a photo at its border, and both terms are means
+      over the valid pixels: the loss and its gradient are those of the
+      photo on its own.
   Returns:
     float [] loss and a dict with its "l1" and "ssim" terms.
   """
-  if weight is None:
+  if weight is None and valid is None:
     l1_term = l1(pred, target)
     ssim_term = ssim(pred, target, padding="same")
   else:
-    w = weight[..., None]
+    w = (jnp.ones(pred.shape[:-1], pred.dtype) if weight is None
+         else weight)[..., None]
+    if valid is not None:
+      inside = valid[..., None]
+      w = w * inside
     # A fully masked view has no pixel to fit: both terms are then 0 / eps
     # = 0 (SSIM term 1 - 0 adds a constant, no gradient).
     total = jnp.maximum(jnp.sum(w) * pred.shape[-1], 1e-6)
@@ -141,6 +151,8 @@ def photometric(pred: jax.Array, target: jax.Array, lambda_dssim: float,
     fill = jax.lax.stop_gradient(pred)
     pred_seen = w * pred + (1.0 - w) * fill
     target_seen = w * target + (1.0 - w) * fill
+    if valid is not None:
+      pred_seen, target_seen = pred_seen * inside, target_seen * inside
     ssim_term = jnp.sum(
         w * ssim_map(pred_seen, target_seen, padding="same")) / total
   loss = (1.0 - lambda_dssim) * l1_term + lambda_dssim * (1.0 - ssim_term)

@@ -42,6 +42,7 @@ class ResidualSource:
   semantic: jax.Array | None = None
   labels: jax.Array | None = None
   num_regions: int = flax.struct.field(pytree_node=False, default=0)
+  per_view = ("semantic", "labels")   # one entry per view (sharding.py)
 
 
 @flax.struct.dataclass
@@ -62,7 +63,8 @@ class ResidualMap:
 def residual_map(source: ResidualSource, stats: residual.ResidualState,
                  view: jax.Array, render: jax.Array, photo: jax.Array,
                  step: jax.Array, key: jax.Array,
-                 sem: config_lib.SemanticConfig) -> ResidualMap:
+                 sem: config_lib.SemanticConfig,
+                 valid: jax.Array | None = None) -> ResidualMap:
   """The transient map of training view `view` at `step`.
 
   Args:
@@ -74,9 +76,12 @@ def residual_map(source: ResidualSource, stats: residual.ResidualState,
     step: int32 [], finished steps.
     key: the step's PRNG key for the warm-up's sampling.
     sem: the semantic config (residual_* fields).
+    valid: None, or float [H, W] in {0, 1}, the photo's pixels on a larger
+      canvas: the pixels outside are neither transient nor static (0 in
+      both maps' masks; residual.counts leaves them out).
   """
   res = residual.residual(render, photo)
-  inlier = residual.inliers(res, stats.threshold, sem.residual_rule)
+  inlier = residual.inliers(res, stats.threshold, sem.residual_rule, valid)
   if source.labels is not None:
     inlier = 1.0 - features.vote(inlier, source.labels[view],
                                  source.num_regions)
@@ -85,16 +90,29 @@ def residual_map(source: ResidualSource, stats: residual.ResidualState,
   if source.semantic is not None:
     gate = (source.semantic[view] > SEMANTIC_GATE).astype(transient.dtype)
     transient, dropped = transient * gate, dropped * gate
+  if valid is not None:
+    transient, dropped = transient * valid, dropped * valid
   return ResidualMap(transient=transient, loss_weight=1.0 - dropped,
                      residual=res)
 
 
-def feature_regions(images, net: str) -> tuple[jax.Array, int]:
+def feature_regions(images, net: str, sizes=None) -> tuple[jax.Array, int]:
   """(int32 [V, H, W] regions of every training photo, label count), from
-  the `net` backbone's features (features.regions, once per photo)."""
+  the `net` backbone's features (features.regions, once per photo).
+
+  With `sizes` (int [V, 2], photos on a larger canvas) each photo is
+  clustered alone and the canvas around it is one more region, the last
+  label, whose verdict no map reads (it is outside the photo).
+  """
   clustering = features.Clustering(net=net)
-  labels = np.stack([features.regions(im, clustering) for im in images])
-  return jnp.asarray(labels, jnp.int32), clustering.num_regions
+  if sizes is None:
+    labels = np.stack([features.regions(im, clustering) for im in images])
+    return jnp.asarray(labels, jnp.int32), clustering.num_regions
+  num = clustering.num_regions
+  labels = np.full(np.shape(images)[:3], num, np.int32)
+  for label, im, (w, h) in zip(labels, images, sizes):
+    label[:h, :w] = features.regions(im[:h, :w], clustering)
+  return jnp.asarray(labels), num + 1
 
 
 def _pool_matrix(n: int, cells: int) -> np.ndarray:

@@ -27,10 +27,18 @@ LPIPS_NETS = {"alex": "alexnet", "vgg": "vgg16"}
 MIN_MSE = 1e-10
 
 
-def psnr(pred: jax.Array, target: jax.Array) -> jax.Array:
+def psnr(pred: jax.Array, target: jax.Array,
+         valid: jax.Array | None = None) -> jax.Array:
   """float [...], PSNR in dB for peak 1: -10 log10(MSE) per image, at most
-  -10 log10(MIN_MSE) = 100 dB (identical images)."""
-  mse = jnp.mean(jnp.square(pred - target), axis=(-3, -2, -1))
+  -10 log10(MIN_MSE) = 100 dB (identical images). `valid` (float [..., H,
+  W] in {0, 1}) takes the MSE over those pixels only."""
+  if valid is None:
+    mse = jnp.mean(jnp.square(pred - target), axis=(-3, -2, -1))
+  else:
+    mse = (jnp.sum(valid[..., None] * jnp.square(pred - target),
+                   axis=(-3, -2, -1))
+           / (pred.shape[-1] * jnp.maximum(jnp.sum(valid, axis=(-2, -1)),
+                                           1.0)))
   return -10.0 * jnp.log10(jnp.maximum(mse, MIN_MSE))
 
 

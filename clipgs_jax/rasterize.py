@@ -259,10 +259,11 @@ def _check_evidence_map(evidence_map, cam: camera_lib.Camera) -> None:
 
 
 def _prepare(proj: project_lib.Projected, cam: camera_lib.Camera,
-             cfg: config_lib.RenderConfig):
+             cfg: config_lib.RenderConfig, valid_size=None):
   """What both blends need: the tile grid, the splats, the depth-sorted
   tile lists (gauss, start, count), the tiled pixel centres and which of
-  them lie inside the image, and the overflow and longest-list counts."""
+  them lie inside the image (and inside `valid_size`, int [2] width and
+  height, when given), and the overflow and longest-list counts."""
   for name in ("tile_budget", "chunk_size", "tile_size"):
     if getattr(cfg, name) < 1:
       raise ValueError(f"RenderConfig.{name} must be >= 1, got "
@@ -270,6 +271,11 @@ def _prepare(proj: project_lib.Projected, cam: camera_lib.Camera,
   grid = blend_lib.Grid(int(cam.width), int(cam.height), cfg.tile_budget,
                         cfg.chunk_size, cfg.lanes, cfg.tile_size)
   pix, pix_inside = _pixel_centers(grid, proj.means2d.dtype)
+  if valid_size is not None:
+    # Pixel centres sit at +0.5, so centre < size exactly for the pixels
+    # of a size[0] x size[1] image in the top-left corner.
+    size = jnp.asarray(valid_size, pix.dtype)
+    pix_inside = pix_inside & jnp.all(pix < size, axis=-1)
   gauss, start, count, num_overflow, max_count = _bin(proj, grid)
   splats = (proj.means2d, proj.conics, proj.colors, proj.opacities,
             proj.depths)
@@ -281,7 +287,8 @@ def rasterize(proj: project_lib.Projected, cam: camera_lib.Camera,
               background: jax.Array, cfg: config_lib.RenderConfig,
               custom_vjp: bool = True,
               evidence_map: jax.Array | None = None,
-              probe: jax.Array | None = None) -> RenderOutput:
+              probe: jax.Array | None = None,
+              valid_size: jax.Array | None = None) -> RenderOutput:
   """Bins, sorts and blends projected splats into an image.
 
   `custom_vjp=False` swaps in `blend.blend_autodiff` (benchmarks and tests
@@ -295,9 +302,13 @@ def rasterize(proj: project_lib.Projected, cam: camera_lib.Camera,
   into `RenderOutput.probe_image`, so with probe = 0 and a loss term
   sum(stop_gradient(m) * probe_image) (worth 0) the gradient d loss /
   d probe_j is sum_i w_ij m_i, and no other gradient changes.
+  `valid_size` (int [2], may be traced) is the width and height of the
+  view's photo in the top-left corner of a larger canvas (the camera's
+  size): pixels outside it are never blended (they show the background,
+  alpha 0) and add nothing to `visible`, `contribution` or `evidence`.
   """
   grid, splats, tables, pix, pix_inside, num_overflow, max_count = (
-      _prepare(proj, cam, cfg))
+      _prepare(proj, cam, cfg, valid_size))
   dtype = proj.means2d.dtype
   if probe is not None:
     if np.shape(probe) != np.shape(proj.depths):

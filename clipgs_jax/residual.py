@@ -71,14 +71,29 @@ def _quantile(cumulative: jax.Array, q: float) -> jax.Array:
   return first.astype(jnp.float32) / HISTOGRAM_BINS
 
 
-def update(state: ResidualState, res: jax.Array, *, quantile: float,
-           decay: float, median_factor: float = 0.0,
-           minimum: float = 0.0) -> ResidualState:
+def counts(res: jax.Array, valid: jax.Array | None = None) -> jax.Array:
+  """float32 [HISTOGRAM_BINS], the histogram of one view's residuals.
+
+  Args:
+    res: float [H, W], the view's residual map.
+    valid: None, or float [H, W] in {0, 1}: only these pixels count (the
+      rest of a canvas is no residual at all).
+  """
+  ones = 1.0 if valid is None else valid.reshape(-1).astype(jnp.float32)
+  return jnp.zeros((HISTOGRAM_BINS,), jnp.float32).at[
+      _bins(res).reshape(-1)].add(ones)
+
+
+def update(state: ResidualState, res: jax.Array | None = None, *,
+           quantile: float, decay: float,
+           median_factor: float = 0.0, minimum: float = 0.0,
+           histogram: jax.Array | None = None) -> ResidualState:
   """Adds one step's residuals; the threshold becomes their quantile.
 
   Args:
     state: the running statistics.
-    res: float [H, W], this step's residual map.
+    res: float [H, W], this step's residual map; or None and
+    histogram: `counts` summed over the step's views.
     quantile: the inlier share, e.g. 0.7: the threshold is the residual
       under which this share of the (decayed) histogram lies.
     decay: weight of the past histogram (0: this step's residuals only).
@@ -89,9 +104,8 @@ def update(state: ResidualState, res: jax.Array, *, quantile: float,
     minimum: the threshold is at least this (a mean absolute colour
       error in [0, 1]; 0: no absolute floor).
   """
-  counts = jnp.zeros((HISTOGRAM_BINS,), jnp.float32).at[
-      _bins(res).reshape(-1)].add(1.0)
-  histogram = decay * state.histogram + counts
+  step_counts = counts(res) if histogram is None else histogram
+  histogram = decay * state.histogram + step_counts
   cumulative = jnp.cumsum(histogram)
   threshold = _quantile(cumulative, quantile)
   if median_factor > 0:
@@ -111,15 +125,16 @@ def _box3(x: jax.Array) -> jax.Array:
   return total / 9.0
 
 
-def _patch_verdict(inlier: jax.Array) -> jax.Array:
+def _patch_verdict(inlier: jax.Array, valid: jax.Array | None = None
+                   ) -> jax.Array:
   """RobustNeRF's patch rule: every PATCH_BLOCK block becomes an inlier
   exactly when more than PATCH_INLIER_SHARE of the PATCH_WINDOW window
-  centred on it (the part inside the image) is."""
+  centred on it (the part inside the image, or inside `valid`) is."""
   h, w = inlier.shape
   b, margin = PATCH_BLOCK, (PATCH_WINDOW - PATCH_BLOCK) // 2
   bh, bw = -(-h // b), -(-w // b)
   pad = ((margin, bh * b - h + margin), (margin, bw * b - w + margin))
-  inside = jnp.pad(jnp.ones_like(inlier), pad)
+  inside = jnp.pad(jnp.ones_like(inlier) if valid is None else valid, pad)
   values = jnp.pad(inlier, pad)
   window = (PATCH_WINDOW, PATCH_WINDOW)
   count = jax.lax.reduce_window(values, 0.0, jax.lax.add, window, (b, b),
@@ -130,14 +145,22 @@ def _patch_verdict(inlier: jax.Array) -> jax.Array:
   return jnp.repeat(jnp.repeat(verdict, b, axis=0), b, axis=1)[:h, :w]
 
 
-def inliers(res: jax.Array, threshold: jax.Array, rule: str) -> jax.Array:
-  """float32 [H, W] in {0, 1}: 1 where the rule calls the pixel static."""
+def inliers(res: jax.Array, threshold: jax.Array, rule: str,
+            valid: jax.Array | None = None) -> jax.Array:
+  """float32 [H, W] in {0, 1}: 1 where the rule calls the pixel static.
+
+  `valid` (None, or float [H, W] in {0, 1}: the photo's pixels on a larger
+  canvas) makes the pixels outside the photo count as outside the image:
+  never inliers, and out of the patch rule's windows.
+  """
   raw = (res < threshold).astype(jnp.float32)
+  if valid is not None:
+    raw = raw * valid
   neighbours = (_box3(raw) > 0.5).astype(jnp.float32)
   if rule == "sls":
     return jnp.maximum(raw, neighbours)
   if rule == "robustnerf":
-    return _patch_verdict(neighbours)
+    return _patch_verdict(neighbours, valid)
   raise ValueError(f"residual rule {rule!r} is not one of {', '.join(RULES)}")
 
 

@@ -28,6 +28,7 @@ from clipgs_jax import guidance
 from clipgs_jax import loop
 from clipgs_jax import plots
 from clipgs_jax import ply
+from clipgs_jax import sharding
 from clipgs_jax import train
 from clipgs_jax.data import default_scene
 from clipgs_jax.data import images as images_lib
@@ -220,15 +221,17 @@ def train_and_evaluate(cfg: config_lib.Config, workdir: str, *,
   scene_path = (default_scene.ensure_default_scene() if embedded
                 else cfg.data.scene)
   scene = scene_lib.load_scene(scene_path, downscale=cfg.data.downscale,
-                               train_split=cfg.data.train_split)
+                               train_split=cfg.data.train_split,
+                               train_views=_held_views(cfg))
   cfg = train.resolve(cfg, scene)
   if resuming:
     checkpoint.check_resumable(ckpt_path, cfg)
   height, width = scene.train.images.shape[1:3]
-  logging.info("scene %s: %d train / %d test views, %dx%d, %d points, "
+  logging.info("scene %s: %d train / %d test views, %dx%d%s, %d points, "
                "extent %.3f", scene_path, len(scene.train.names),
-               len(scene.test.names), width, height, len(scene.points),
-               scene.extent)
+               len(scene.test.names), width, height,
+               "" if scene.train.sizes is None else " (canvas)",
+               len(scene.points), scene.extent)
   try:
     scorer = guidance.make_scorer(cfg.semantic, scene,
                                   clip_weights=clip_weights)
@@ -238,9 +241,32 @@ def train_and_evaluate(cfg: config_lib.Config, workdir: str, *,
   info = {"scene": os.path.abspath(scene_path), "embedded_scene": embedded,
           "downscale": cfg.data.downscale,
           "train_split": cfg.data.train_split, **(run_info or {})}
+  if not sharding.is_writer():
+    # Another process of a multi-host run writes the folder.
+    result = train.fit(cfg, scene, workdir, scorer=scorer, resume=resume,
+                       progress=False)
+    return {"steps": int(result.state.step)}
   with cli.output_dir(workdir, keep=train.CHECKPOINT_NAME):
     return _train_into(cfg, scene, workdir, scorer=scorer, resume=resume,
                        progress=progress, run_info=info)
+
+
+def _held_views(cfg: config_lib.Config):
+  """None, or in a multi-host run which training views this process
+  reads (those of its devices' lanes, sharding.holds).
+
+  Raises:
+    ValueError: train.batch_size does not divide over the devices (before
+      any scene is read).
+  """
+  size = cfg.train.batch_size
+  if size == 1 and jax.process_count() == 1:
+    return None
+  mesh = sharding.make_mesh(size)
+  if jax.process_count() == 1:
+    return None
+  lanes = sharding.held_lanes(mesh, size)
+  return lambda view: sharding.holds(view, size, lanes)
 
 
 def _train_into(cfg: config_lib.Config, scene, workdir: str, *, scorer,
@@ -256,7 +282,7 @@ def _train_into(cfg: config_lib.Config, scene, workdir: str, *, scorer,
                     config_lib.to_dict(cfg))
   result = train.fit(cfg, scene, workdir, scorer=scorer, resume=resume,
                      progress=progress)
-  state = result.state
+  state = sharding.local(result.state)
   test = test_metrics(state.params, state.alive, scene.test, cfg, lpips_net,
                       renders_dir=os.path.join(workdir, TEST_RENDERS))
   ply.write_ply(os.path.join(workdir, POINT_CLOUD_PLY), state.params,
@@ -279,7 +305,8 @@ def _train_into(cfg: config_lib.Config, scene, workdir: str, *, scorer,
       "final_train": {k: v for k, v in final_log.items()
                       if not k.startswith("grad_norm")},
       "image_size": [int(width), int(height)],
-      "num_train_views": len(scene.train.names),
+      "num_train_views": len(np.asarray(
+          scene_lib.all_train_cameras(scene).fx)),
       "machine": f"{platform.node()} {platform.processor() or ''} "
                  f"{os.cpu_count()} cpus, jax {jax.__version__} "
                  f"{jax.default_backend()}",

@@ -185,7 +185,8 @@ def prune_masks(stats: state_lib.SemanticStats, opacity_logits: jax.Array,
   return semantic, visibility
 
 
-def oracle_score(mask: jax.Array, saturation: float) -> jax.Array:
+def oracle_score(mask: jax.Array, saturation: float,
+                 area: jax.Array | None = None) -> jax.Array:
   """The s_hat_d a perfect image-level detector gives a view (benchmarks).
 
   The score rises linearly with the transient area fraction f of the view,
@@ -197,10 +198,15 @@ def oracle_score(mask: jax.Array, saturation: float) -> jax.Array:
   Args:
     mask: bool [H, W], the view's ground-truth transient mask.
     saturation: area fraction in (0, 1] at which the score reaches 1.
+    area: float [], the photo's pixels when it lies on a larger canvas
+      (the mask is False outside it); None: the mask's size.
   """
   if not 0 < saturation <= 1:
     raise ValueError(f"oracle saturation must be in (0, 1], got {saturation}.")
-  f = jnp.mean(mask.astype(jnp.float32))
+  if area is None:
+    f = jnp.mean(mask.astype(jnp.float32))
+  else:
+    f = jnp.sum(mask.astype(jnp.float32)) / area
   return NEUTRAL_SCORE + NEUTRAL_SCORE * jnp.minimum(1.0, f / saturation)
 
 

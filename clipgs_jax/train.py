@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from clipgs_jax import batch_step
 from clipgs_jax import camera as camera_lib
 from clipgs_jax import config as config_lib
 from clipgs_jax import densify
@@ -28,15 +29,16 @@ from clipgs_jax import rasterize
 from clipgs_jax import residual as residual_lib
 from clipgs_jax import semantic as semantic_lib
 from clipgs_jax import sh
+from clipgs_jax import sharding
 from clipgs_jax import state as state_lib
+from clipgs_jax import view as view_lib
+from clipgs_jax.data import scene as scene_lib
 
 _log = logging.getLogger(__name__)
 
-# fold_in tags that give each use of the run's key its own stream.
-_VIEW_STREAM = 1
-_BACKGROUND_STREAM = 2
+# The fold_in tag of densification's stream of the run's key (view.py
+# holds the others).
 _DENSIFY_STREAM = 3
-_RESIDUAL_STREAM = 4
 
 CHECKPOINT_NAME = "checkpoint.npz"
 
@@ -94,42 +96,16 @@ def init_state(cfg: config_lib.Config, params: gaussians.GaussianParams,
             if cfg.semantic.uses_residual else None))
 
 
-def view_index(key: jax.Array, step: jax.Array, num_views: int
-               ) -> jax.Array:
-  """int32 [], the training view of `step`.
-
-  Views are visited in a fresh random permutation each epoch (epoch =
-  step // V), as the reference 3DGS loop does; the permutation is a pure
-  function of (key, epoch), so a resumed run sees the same views.
-  """
-  epoch_key = jax.random.fold_in(jax.random.fold_in(key, _VIEW_STREAM),
-                                 step // num_views)
-  return jax.random.permutation(epoch_key, num_views)[step % num_views]
-
-
-def background(key: jax.Array, step: jax.Array, cfg: config_lib.Config
-               ) -> jax.Array:
-  """float [3]: a uniform random colour per step, or the fixed background."""
-  if cfg.train.random_background:
-    k = jax.random.fold_in(jax.random.fold_in(key, _BACKGROUND_STREAM), step)
-    return jax.random.uniform(k, (3,), jnp.float32)
-  return jnp.asarray(cfg.train.background, jnp.float32)
-
-
 def train_step(state: state_lib.TrainState, batch: Batch, scorer=None, *,
                cfg: config_lib.Config
                ) -> tuple[state_lib.TrainState, dict[str, jax.Array]]:
   """One optimisation step on one training view.
 
-  Renders the view (project + rasterize, with a zero offset on the splat
-  centres whose gradient is the screen-space positional gradient), takes
-  the 3DGS loss (1 - l) L1 + l (1 - SSIM), applies Adam, and accumulates
-  the densification statistics. With a scorer (semantic guidance on) the
-  loss gains the CLIP opacity term from reg_start, and the same render is
-  scored and accumulated into state.semantic when due; without one the
-  step is exactly the vanilla 3DGS step. With pixel evidence the view's
-  map m goes into the render, which returns each Gaussian's sum w m beside
-  sum w, and (loss_masking) the photometric loss is weighted by 1 - m.
+  Renders the view and differentiates its loss (view.render_and_grad),
+  applies Adam, and accumulates the densification statistics. With a
+  scorer (semantic guidance on) the same render is scored and accumulated
+  into state.semantic when due; without one the step is exactly the
+  vanilla 3DGS step. (batch_step: B views per step, over devices.)
 
   Args:
     state: the TrainState (donated by make_train_step).
@@ -140,58 +116,19 @@ def train_step(state: state_lib.TrainState, batch: Batch, scorer=None, *,
   guidance.check_scorer(cfg.semantic, scorer, "train.train_step")
   num_views, height, width = batch.images.shape[:3]
   step = state.step
-  view = view_index(state.key, step, num_views)
+  view = view_lib.view_index(state.key, step, num_views)
   cam = camera_lib.camera_at(batch.cameras, view)
   target = batch.images[view]
-  bg = background(state.key, step, cfg)
+  bg = view_lib.background(state.key, step, cfg)
   degree = sh.active_degree(step, cfg.densify.sh_degree_every,
                            cfg.gaussians.sh_degree)
   sem = cfg.semantic
   localized = scorer is not None and sem.localized
-  # The residual map depends on the render: it cannot go into the render's
-  # pass, so its per-Gaussian sums come from the backward pass (probe).
   dynamic = scorer is not None and sem.uses_residual
-  evidence_map = (jax.lax.stop_gradient(scorer.score_map(view))
-                  if localized and not dynamic else None)
-  loss_weight = (1.0 - evidence_map
-                 if evidence_map is not None and sem.loss_masking else None)
-  sample_key = jax.random.fold_in(
-      jax.random.fold_in(state.key, _RESIDUAL_STREAM), step)
-
-  def loss_fn(params, offset, probe):
-    proj = project.project(params, state.alive, cam, near=cfg.render.near,
-                           sh_degree=degree)
-    proj = proj.replace(means2d=proj.means2d + offset)
-    out = rasterize.rasterize(proj, cam, bg, cfg.render,
-                              evidence_map=evidence_map, probe=probe)
-    weight, rmap = loss_weight, None
-    if dynamic:
-      rmap = map_sources.residual_map(scorer, state.maps, view, out.image,
-                                      target, step, sample_key, sem)
-      if sem.loss_masking:
-        weight = rmap.loss_weight
-    loss, terms = losses.photometric(out.image, target,
-                                     cfg.train.lambda_dssim, weight)
-    if dynamic:
-      # Worth exactly 0 (the probe is 0); its gradient with respect to the
-      # probe is each Gaussian's sum_i w_ij m_i.
-      loss = loss + jnp.sum(jax.lax.stop_gradient(rmap.transient)
-                            * out.probe_image)
-    if scorer is not None:
-      terms["semantic_loss"] = guidance.opacity_regularizer(
-          state.semantic, params.opacity_logits, state.alive, step, cfg)
-      loss = loss + terms["semantic_loss"]
-    return loss, (out, proj, terms, rmap)
-
-  offset = jnp.zeros((state.capacity, 2), state.params.means.dtype)
-  if dynamic:
-    probe = jnp.zeros((state.capacity,), state.params.means.dtype)
-    (loss, (out, proj, terms, rmap)), (grads, grad2d, probe_grad) = (
-        jax.value_and_grad(loss_fn, argnums=(0, 1, 2), has_aux=True)(
-            state.params, offset, probe))
-  else:
-    (loss, (out, proj, terms, rmap)), (grads, grad2d) = jax.value_and_grad(
-        loss_fn, argnums=(0, 1), has_aux=True)(state.params, offset, None)
+  (loss, out, proj, terms, rmap, grads, grad2d, probe_grad,
+   evidence_map) = view_lib.render_and_grad(
+       state, scorer, cfg, view=view, cam=cam, target=target, bg=bg,
+       degree=degree, key=state.key)
   # Dead rows get no gradient from the render; the mask makes it explicit.
   grads = jax.tree.map(
       lambda g: jnp.where(
@@ -240,8 +177,8 @@ def train_step(state: state_lib.TrainState, batch: Batch, scorer=None, *,
     due = guidance.scores_due(step, sem)
     evidence, weight = out.evidence, out.contribution
     if sem.agreement:
-      reproduced = _reproduced_evidence(due, proj, cam, bg, cfg,
-                                        evidence_map, out.image, target)
+      reproduced = view_lib.reproduced_evidence(
+          due, proj, cam, bg, cfg, evidence_map, out.image, target)
       weight = semantic_lib.agreement_weight(weight, evidence, reproduced)
       evidence = reproduced
     semantic_stats = semantic_lib.accumulate_pixel(
@@ -258,24 +195,6 @@ def train_step(state: state_lib.TrainState, batch: Batch, scorer=None, *,
                             densify=stats, semantic=semantic_stats,
                             step=step + 1, maps=maps)
   return new_state, metrics
-
-
-def _reproduced_evidence(due, proj, cam, bg, cfg, evidence_map, image,
-                         target):
-  """float [C], sum_i w_ij m_i a_i with a = semantic.agreement(render, photo).
-
-  The agreement needs the finished render, so this is a second forward
-  pass of the same projected splats (no gradient), run only on scoring
-  steps (lax.cond); other steps return zeros.
-  """
-  proj = jax.lax.stop_gradient(proj)
-  weighted = evidence_map * semantic_lib.agreement(
-      jax.lax.stop_gradient(image), target)
-  return jax.lax.cond(
-      due,
-      lambda: rasterize.rasterize(proj, cam, bg, cfg.render,
-                                  evidence_map=weighted).evidence,
-      lambda: jnp.zeros_like(proj.depths))
 
 
 @config_lib.cache_by_compiled_part(
@@ -311,7 +230,7 @@ def resolve(cfg: config_lib.Config, scene) -> config_lib.Config:
 
 def initial_state(cfg: config_lib.Config, scene) -> state_lib.TrainState:
   """Step-0 state from the scene's points (random points if it has none)."""
-  cams = scene.train.cameras
+  cams = scene_lib.all_train_cameras(scene)
   centers = -np.einsum("vji,vj->vi", np.asarray(cams.rotation, np.float64),
                        np.asarray(cams.translation, np.float64))
   points = getattr(scene, "points", None)
@@ -321,12 +240,38 @@ def initial_state(cfg: config_lib.Config, scene) -> state_lib.TrainState:
   return init_state(cfg, params, alive)
 
 
+def batched(cfg: config_lib.Config, scene) -> bool:
+  """Whether `scene` trains with batch_step: more than one view per step,
+  photos of different sizes, or a process holding only its own views."""
+  return (cfg.train.batch_size > 1
+          or getattr(scene.train, "sizes", None) is not None
+          or getattr(scene, "train_cameras", None) is not None)
+
+
+def _stepper(cfg: config_lib.Config, scene, state: state_lib.TrainState,
+             scorer, devices):
+  """(jitted step, its views, state, scorer) of a run: train_step on a
+  Batch of every view, or batch_step on the views' lanes over the devices
+  (sharding.py) with the state replicated and the scorer's per-view
+  fields dealt into lanes."""
+  if not batched(cfg, scene):
+    return make_train_step(cfg), make_batch(scene.train), state, scorer
+  mesh = sharding.make_mesh(cfg.train.batch_size, devices)
+  lanes, rows = sharding.lanes_of(scene, cfg.train.batch_size, mesh)
+  height, width = lanes.images.shape[2:4]
+  return (batch_step.make_step(cfg, mesh), lanes,
+          sharding.replicate(state, mesh),
+          sharding.scorer_lanes(scorer, rows, height, width, mesh))
+
+
 def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
         resume: bool = False, progress: bool = True,
-        stop_after: int | None = None) -> loop.FitResult:
+        stop_after: int | None = None, devices=None) -> loop.FitResult:
   """Trains on scene.train, tracking test PSNR on scene.test.
 
-  Each step runs the jitted train step, then the host hooks of `loop`, in
+  Each step runs the jitted train step (train_step; batch_step when
+  train.batch_size > 1 or the photos differ in size), then the host hooks
+  of `loop`, in
   this order: a test evaluation (every eval_every steps and at the end;
   its time is excluded from the curve's seconds), the semantic prune
   (guidance.prune_due), densify with capacity growth and the opacity reset
@@ -348,14 +293,16 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
     progress: show a tqdm progress bar.
     stop_after: stop once this many steps are done, with a checkpoint, as
       a preemption would (a later resume=True call finishes the run).
+    devices: the devices a batch of views spreads over
+      (sharding.make_mesh); default every device.
   """
   guidance.check_scorer(cfg.semantic, scorer, "train.fit")
   os.makedirs(workdir, exist_ok=True)
   ckpt_path = os.path.join(workdir, CHECKPOINT_NAME)
-  batch = make_batch(scene.train)
   state, flog = loop.restore(initial_state(cfg, scene), ckpt_path, cfg,
                              resume)
-  step_fn = make_train_step(cfg)
+  step_fn, data, state, step_scorer = _stepper(cfg, scene, state, scorer,
+                                               devices)
   total = cfg.train.steps
   start = int(state.step)
   ctx = loop.Context(
@@ -372,7 +319,7 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
   flog = loop.start_clock(flog)
   try:
     for step in range(start + 1, ctx.end + 1):   # `step` = steps done after
-      state, metrics = step_fn(state, batch, scorer)
+      state, metrics = step_fn(state, data, step_scorer)
       flog = loop.record_step(flog, step, metrics, ctx)
       # Evaluate the optimisation steps' result before this step's
       # housekeeping (as 3DGS reports); a densify would show a transient.

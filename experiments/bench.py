@@ -1,4 +1,5 @@
-"""Timings, one JSON line per result: rasterizer, step, clip or semantic.
+"""Timings, one JSON line per result: rasterizer, step, clip, semantic,
+features or views.
 
   python experiments/bench.py --bench=rasterizer [--num_gaussians=10000
       --sizes=256x256]
@@ -10,6 +11,8 @@
       --checkpoint=RUN/checkpoint.npz --score_every=1,10,20]
   python experiments/bench.py --bench=features --bench_scene=DIR
       [--bench_downscale=8 --repeats=21]
+  python experiments/bench.py --bench=views --bench_scene=DIR
+      [--bench_downscale=4 --batch_devices=1x1,2x1,4x1,2x2,4x2 --host_devices=2]
 
 rasterizer: custom VJP against plain autodiff of the forward, per (N, image
   size, variant), on Gaussians scattered in the view frustum.
@@ -21,6 +24,9 @@ clip: the CLIP encoders, preprocessing, tokenizer and text cache, and
 semantic: step-time overhead of guidance over the vanilla step.
 features: the feature regions of the first --repeats training photos
   (per photo, compiled once) and their per-step vote (features.benchmark).
+views: views per second of B views per step on D devices (BxD), every
+  variant in one process, timed round-robin; on a CPU the devices are
+  --host_devices forced host devices sharing its cores.
 The lab's functions (clipgs_jax/lab/timing.py, clipgs_jax/lab/
 clip_timing.py) document every field.
 """
@@ -28,11 +34,13 @@ clip_timing.py) document every field.
 import json
 
 from absl import flags
+import jax
 
 from clipgs_jax.lab import timing
 from clipgs_jax import cli
 from clipgs_jax import config as config_lib
 from clipgs_jax import features
+from clipgs_jax.lab import batch_timing
 from clipgs_jax.lab import clip_timing
 from clipgs_jax.clip import dense
 from clipgs_jax.clip import model
@@ -51,6 +59,7 @@ DEFAULTS = {
     "clip": dict(repeats=10),
     "semantic": dict(tile_budget=8192, bench_downscale=1),
     "features": dict(repeats=21, bench_downscale=8),
+    "views": dict(tile_budget=8192, bench_downscale=4, num_gaussians=["0"]),
 }
 
 _BENCH = flags.DEFINE_enum("bench", None, list(DEFAULTS), "What to time.")
@@ -75,12 +84,12 @@ _MAX_GIB = flags.DEFINE_float(
     "max_gib", 12.0, "rasterizer: skip a variant whose compiled forward + "
     "backward needs more memory than this (GiB).")
 _SCENE = flags.DEFINE_string(
-    "bench_scene", None, "step / semantic / features: scene folder or pack "
-    "(step, features: required, e.g. the bird scene; semantic: default the "
-    "embedded scene).")
+    "bench_scene", None, "step / semantic / features / views: scene folder "
+    "or pack (step, features, views: required, e.g. the bird scene; "
+    "semantic: default the embedded scene).")
 _DOWNSCALE = flags.DEFINE_integer(
-    "bench_downscale", None, "step / semantic / features: image downscale "
-    "(default 4 / 1 / 8).")
+    "bench_downscale", None, "step / semantic / features / views: image "
+    "downscale (default 4 / 1 / 8 / 4).")
 _VIEW = flags.DEFINE_integer("view", 0, "step: training view index.")
 _CHECKPOINT = flags.DEFINE_string("checkpoint", None, "step / semantic: a "
                                   "train.py checkpoint.npz of the scene.")
@@ -105,9 +114,15 @@ _DENSE_READOUTS = flags.DEFINE_list(
     f"clip: dense readouts, of {dense.READOUTS}.")
 _SCORE_EVERY = flags.DEFINE_list("score_every", ["1", "10", "20"],
                                  "semantic: CLIP scoring cadences.")
-_TIMED_STEPS = flags.DEFINE_integer("timed_steps", 40, "semantic: timed "
-                                    "steps per variant (a multiple of every "
-                                    "--score_every).")
+_TIMED_STEPS = flags.DEFINE_integer("timed_steps", 40, "semantic / views: "
+                                    "timed steps per variant (semantic: a "
+                                    "multiple of every --score_every).")
+_BATCH_DEVICES = flags.DEFINE_list(
+    "batch_devices", ["1x1", "2x1", "4x1", "2x2", "4x2"],
+    "views: BxD variants, batch size B on D devices (D divides B).")
+_HOST_DEVICES = flags.DEFINE_integer(
+    "host_devices", 2, "views: CPU devices the host is split into (XLA's "
+    "forced host devices); a GPU machine uses its GPUs.")
 flags.mark_flag_as_required("bench")
 
 
@@ -133,6 +148,10 @@ flags.register_validator(
     "--radius_px takes two numbers LO,HI with 0 < LO <= HI, e.g. 2,20")
 flags.register_validator(
     "sizes", _sizes_ok, "--sizes takes WIDTHxHEIGHT items, e.g. 256x256")
+flags.register_validator(
+    "batch_devices", lambda v: _sizes_ok(v) and all(
+        int(x.split("x")[0]) % int(x.split("x")[1]) == 0 for x in v),
+    "--batch_devices takes BxD items with D dividing B, e.g. 4x2")
 
 
 def _value(name: str, flag):
@@ -192,6 +211,20 @@ def _results():
         _SCENE.value, downscale=downscale).train.images[:repeats]
     yield dict(features.benchmark(photos), scene=_SCENE.value,
                downscale=downscale)
+  elif what == "views":
+    cli.require(_SCENE.value is not None, "bench_scene", _SCENE.value,
+                "is missing: --bench=views times a real scene; pass a scene "
+                "folder or pack, e.g. --bench_scene=DATA/bird")
+    cli.require_file("bench_scene", _SCENE.value)
+    yield from batch_timing.views_per_second(
+        _SCENE.value, _value("bench_downscale", _DOWNSCALE),
+        variants=[tuple(int(x) for x in v.split("x")) for v in
+                  _BATCH_DEVICES.value],
+        steps=_TIMED_STEPS.value,
+        num_gaussians=_ints(_value("num_gaussians", _NUM))[0],
+        render=config_lib.RenderConfig(
+            tile_budget=budget, chunk_size=_CHUNK.value, lanes=_LANES.value,
+            tile_size=_TILE_SIZE.value))
   else:
     yield from timing.semantic_overhead(
         _SCENE.value or default_scene.ensure_default_scene(),
@@ -203,6 +236,9 @@ def _results():
 
 def main(argv):
   cli.no_arguments(argv)
+  if _BENCH.value == "views":
+    # Before anything touches a device: the CPU backend's device count.
+    jax.config.update("jax_num_cpu_devices", _HOST_DEVICES.value)
   for result in _results():
     print(json.dumps(result), flush=True)
 

@@ -3,6 +3,8 @@
   python experiments/train.py --workdir=DIR [--config=configs/NAME.py]
       [--scene=DIR|PACK.npz] [--resume] [--clip_weights=PATH]
       [--config.train.steps=N] [--config.semantic.scorer=oracle] ...
+      [--config.train.batch_size=B] [--coordinator_address=HOST:PORT
+      --num_processes=N --process_id=I]
 
 --config (default configs/default.py: the 3DGS paper values; the embedded
 scene at default_scene.TRAIN_STEPS steps without --scene) is an
@@ -28,6 +30,7 @@ from ml_collections import config_flags
 from clipgs_jax import cli
 from clipgs_jax import config as config_lib
 from clipgs_jax import run
+from clipgs_jax import sharding
 from clipgs_jax.lab import sweep
 
 # Next to this script, so that a non-editable install finds it too.
@@ -49,11 +52,22 @@ _RESUME = flags.DEFINE_bool("resume", False, "Continue from "
 _CLIP_WEIGHTS = flags.DEFINE_string(
     "clip_weights", None, "CLIP weights for clip scorers (OpenAI .pt, HF "
     "safetensors or directory, or .npz); default $CLIPGS_CLIP_WEIGHTS.")
+_COORDINATOR = flags.DEFINE_string(
+    "coordinator_address", None, "Multi-host: host:port of process 0 "
+    "(default $JAX_COORDINATOR_ADDRESS); every process runs this command "
+    "with the same flags and its own --process_id.")
+_NUM_PROCESSES = flags.DEFINE_integer(
+    "num_processes", None, "Multi-host: the number of processes (default: "
+    "from the cluster, e.g. SLURM).")
+_PROCESS_ID = flags.DEFINE_integer(
+    "process_id", None, "Multi-host: this process's index, 0 writes the "
+    "run folder (default: from the cluster).")
 flags.mark_flag_as_required("workdir")
 
 
 def main(argv):
   cli.no_arguments(argv)
+  sharding.join(_COORDINATOR.value, _NUM_PROCESSES.value, _PROCESS_ID.value)
   cd = ml_collections.ConfigDict(_CONFIG.value.to_dict())   # unlocked
   run_info = {"config": config_flags.get_config_filename(
       flags.FLAGS["config"]), "argv": sys.argv}
@@ -69,6 +83,8 @@ def main(argv):
   out = run.train_and_evaluate(
       config_lib.check(cd), _WORKDIR.value, resume=_RESUME.value,
       clip_weights=_CLIP_WEIGHTS.value, run_info=run_info)
+  if not sharding.is_writer():
+    return
   print(json.dumps({k: out[k] for k in ("train_seconds", "steps",
                                         "num_gaussians")}
                    | {f"test.{k}": out["test"][k]

@@ -122,14 +122,55 @@ def test_ambiguous_robustnerf_name(tmp_path):
     _load(tmp_path / "s")
 
 
-def test_mixed_sizes_in_a_split(tmp_path):
+def test_mixed_sizes_share_a_canvas(tmp_path):
   names = [f"img{i:02d}.png" for i in range(4)]
-  write_scene(tmp_path / "s", names, cams=((64, 48), (80, 60)),
-              cam_of={n: 1 if n != "img02.png" else 2 for n in names})
+  pixels = write_scene(tmp_path / "s", names, cams=((64, 48), (80, 40)),
+                       cam_of={n: 1 if n != "img02.png" else 2
+                               for n in names})
+  s = _load(tmp_path / "s")
+  # img00 is a test view (every 8th); the training views share an 80x48
+  # canvas, each photo in its top-left corner.
+  assert (s.train.cameras.width, s.train.cameras.height) == (80, 48)
+  np.testing.assert_array_equal(s.train.sizes, [[64, 48], [80, 40],
+                                                [64, 48]])
+  assert s.train.images.shape == (3, 48, 80, 3)
+  np.testing.assert_allclose(s.train.images[1, :40], pixels["img02.png"],
+                             atol=1e-6)
+  np.testing.assert_array_equal(s.train.images[1, 40:], 0.0)
+  np.testing.assert_allclose(s.train.images[0, :, :64],
+                             pixels["img01.png"], atol=1e-6)
+  np.testing.assert_array_equal(s.train.images[0, :, 64:], 0.0)
+  assert s.test.sizes is None and s.test.images.shape == (1, 48, 64, 3)
+  # Packed and read back with its sizes.
+  scene.pack(str(tmp_path / "s"), str(tmp_path / "s.npz"), 1,
+             cache_dir=str(tmp_path / "cache"))
+  packed = scene.load_scene(str(tmp_path / "s.npz"))
+  np.testing.assert_array_equal(packed.train.sizes, s.train.sizes)
+  _assert_same_scene(packed, s)
+
+
+def test_a_canvas_too_large_for_its_photos_is_refused(tmp_path):
+  names = [f"img{i:02d}.png" for i in range(9)]
+  write_scene(tmp_path / "s", names, cams=((64, 48), (16, 12)),
+              cam_of={n: 1 if n == "img01.png" else 2 for n in names})
   with pytest.raises(ValueError) as e:
     _load(tmp_path / "s")
-  assert "img02.png" in str(e.value) and "80x60" in str(e.value)
-  assert "\n" not in str(e.value)
+  assert "16x12 to 64x48" in str(e.value) and "\n" not in str(e.value)
+
+
+def test_a_process_reads_only_its_views(tmp_path):
+  names = [f"img{i:02d}.png" for i in range(9)]
+  write_scene(tmp_path / "s", names)
+  full = _load(tmp_path / "s")
+  held = _load(tmp_path / "s", train_views=lambda v: v % 2 == 1)
+  assert held.train.names == full.train.names[1::2]
+  np.testing.assert_array_equal(held.train.ids, [1, 3, 5])
+  np.testing.assert_array_equal(held.train.images, full.train.images[1::2])
+  assert held.extent == full.extent
+  np.testing.assert_array_equal(held.train_cameras.rotation,
+                                full.train.cameras.rotation)
+  np.testing.assert_array_equal(held.train_cameras.translation,
+                                full.train.cameras.translation)
 
 
 def test_image_size_disagrees_with_camera(tmp_path):
@@ -290,6 +331,9 @@ def test_bonsai_is_undistorted(real_cache):
 
 def _assert_same_views(a: scene.Views, b: scene.Views):
   assert a.names == b.names
+  assert (a.sizes is None) == (b.sizes is None)
+  if a.sizes is not None:
+    np.testing.assert_array_equal(a.sizes, b.sizes)
   assert a.images.dtype == b.images.dtype == np.float32
   np.testing.assert_array_equal(a.images, b.images)
   assert (a.masks is None) == (b.masks is None)

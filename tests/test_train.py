@@ -23,6 +23,7 @@ from clipgs_jax import guidance
 from clipgs_jax import loop
 from clipgs_jax import sh
 from clipgs_jax import train
+from clipgs_jax import view
 
 TEST_CFG = config.Config(
     gaussians=config.GaussiansConfig(capacity=256, max_capacity=256,
@@ -125,11 +126,11 @@ class ViewAndBackgroundTest(absltest.TestCase):
 
   def test_each_epoch_is_a_permutation(self):
     key = jax.random.key(0)
-    order = [int(train.view_index(key, jnp.int32(s), 5)) for s in range(15)]
+    order = [int(view.view_index(key, jnp.int32(s), 5)) for s in range(15)]
     for epoch in range(3):
       self.assertEqual(sorted(order[5 * epoch:5 * epoch + 5]), list(range(5)))
     self.assertNotEqual(order[:5], order[5:10])     # reshuffled per epoch
-    again = [int(train.view_index(key, jnp.int32(s), 5)) for s in range(15)]
+    again = [int(view.view_index(key, jnp.int32(s), 5)) for s in range(15)]
     self.assertEqual(order, again)                  # pure in (key, step)
 
   def test_background(self):
@@ -137,14 +138,14 @@ class ViewAndBackgroundTest(absltest.TestCase):
     fixed = dataclasses.replace(TEST_CFG, train=config.TrainConfig(
         background=(1.0, 0.5, 0.0)))
     np.testing.assert_array_equal(
-        train.background(key, jnp.int32(3), fixed), [1.0, 0.5, 0.0])
+        view.background(key, jnp.int32(3), fixed), [1.0, 0.5, 0.0])
     rand = dataclasses.replace(TEST_CFG, train=config.TrainConfig(
         random_background=True))
-    b3 = train.background(key, jnp.int32(3), rand)
-    b4 = train.background(key, jnp.int32(4), rand)
+    b3 = view.background(key, jnp.int32(3), rand)
+    b4 = view.background(key, jnp.int32(4), rand)
     self.assertTrue(np.all((b3 >= 0) & (b3 <= 1)))
     self.assertFalse(np.allclose(b3, b4))
-    np.testing.assert_array_equal(b3, train.background(key, jnp.int32(3),
+    np.testing.assert_array_equal(b3, view.background(key, jnp.int32(3),
                                                        rand))
 
   def test_boundary_errors(self):

@@ -2,7 +2,9 @@
 
 import dataclasses
 import os
+from typing import Callable
 
+import jax
 import numpy as np
 
 from clipgs_jax import camera
@@ -35,29 +37,103 @@ PACK_FORMAT = "clipgs_jax scene pack 2"
 # files are k / 255 = 257 k / 65535), so a pack stores uint16 exactly.
 _CODES = 65535
 _CAMERA_FIELDS = ("rotation", "translation", "fx", "fy", "cx", "cy")
+# Photos of different sizes share one canvas: the largest width by the
+# largest height, each photo in its top-left corner (`Views.sizes`). A
+# canvas costs its area in every render and in device memory for every
+# photo, so a split whose canvas exceeds this many times the mean photo's
+# area is refused (portrait and landscape photos of one camera are 1.33x
+# at 4:3, 1.78x at 16:9; a thumbnail among full-size photos is far more;
+# BUILD_NOTES.md, "Multi-device training").
+MAX_CANVAS_WASTE = 4.0
 
 
 @dataclasses.dataclass(frozen=True)
 class Views:
-  """Views of one split, all of one image size.
+  """Views of one split on one canvas.
 
   Attributes:
     cameras: camera.Camera whose array fields have a leading [V] axis
       (rotation [V, 3, 3], translation [V, 3], fx/fy/cx/cy [V]); width and
-      height are shared by all views.
+      height are the canvas's, shared by all views.
     images: float32 [V, H, W, 3] in [0, 1].
     names: tuple of V str, image names (COLMAP names), in
       colmap.natural_key order.
     masks: bool [V, H, W], True = transient pixel; None when the scene has
       no masks (test views never have masks).
+    sizes: int32 [V, 2], each photo's width and height when some photo
+      does not fill the canvas (photos of different sizes): each lies in
+      the top-left corner of the H x W canvas, zero (and not transient)
+      outside it. None when every photo fills it.
+    ids: int [V], each view's position among all views of its split; None
+      means 0..V-1. A process of a multi-host run holds only its own
+      training views (load_scene's `train_views`).
   """
   cameras: camera.Camera
   images: np.ndarray
   names: tuple[str, ...]
   masks: np.ndarray | None
+  sizes: np.ndarray | None = None
+  ids: np.ndarray | None = None
 
   def __len__(self) -> int:
     return len(self.names)
+
+
+def photo_size(views, i: int) -> tuple[int, int]:
+  """(width, height) of view i's photo: its canvas corner or the canvas."""
+  sizes = getattr(views, "sizes", None)
+  if sizes is None:
+    return int(views.cameras.width), int(views.cameras.height)
+  return int(sizes[i][0]), int(sizes[i][1])
+
+
+def crop(views, i: int, array):
+  """`array` ([H, W, ...] on the canvas of `views`) cut to view i's photo."""
+  width, height = photo_size(views, i)
+  return array[:height, :width]
+
+
+def on_canvas(arrays, sizes: np.ndarray | None, fill=0) -> np.ndarray:
+  """[V, H, W, ...]: per-view arrays of (possibly) different sizes in the
+  top-left corner of the canvas `sizes` spans, `fill` elsewhere.
+
+  Args:
+    arrays: V arrays [h_i, w_i, ...] of one dtype.
+    sizes: int [V, 2] of their (w_i, h_i), or None when they share one
+      size (then they are stacked as they are).
+  """
+  if sizes is None:
+    return np.stack(arrays)
+  width, height = (int(x) for x in np.max(sizes, axis=0))
+  first = np.asarray(arrays[0])
+  out = np.full((len(arrays), height, width) + first.shape[2:], fill,
+                first.dtype)
+  for i, a in enumerate(arrays):
+    out[i, :a.shape[0], :a.shape[1]] = a
+  return out
+
+
+def canvas_sizes(sizes, what: str) -> np.ndarray | None:
+  """int32 [V, 2] of the photos' (width, height), or None when they share
+  one size.
+
+  Raises:
+    ValueError: the canvas holds more than MAX_CANVAS_WASTE times the
+      mean photo's pixels.
+  """
+  sizes = np.asarray(sizes, np.int32).reshape(-1, 2)
+  if len(sizes) == 0 or np.all(sizes == sizes[0]):
+    return None
+  width, height = np.max(sizes, axis=0)
+  waste = width * height / np.mean(np.prod(sizes.astype(np.float64), -1))
+  if waste > MAX_CANVAS_WASTE:
+    small = sizes[np.argmin(np.prod(sizes, -1))]
+    raise ValueError(
+        f"{what}: photos from {small[0]}x{small[1]} to {width}x{height} "
+        f"share a {width}x{height} canvas of {waste:.1f}x the mean photo's "
+        f"pixels (at most {MAX_CANVAS_WASTE:g}x); resize or crop the "
+        "photos to similar sizes, or train them as separate scenes.")
+  return sizes
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,6 +148,10 @@ class Scene:
       times 1.1 (3DGS's cameras_extent); scales learning rates and
       densification thresholds.
     path: str, the scene folder (or its pack file).
+    train_cameras: every training camera (stacked), when `train` holds
+      only some of the training views (a process of a multi-host run);
+      None: train.cameras. For poses: the intrinsics of the views not held
+      are scaled to images.downscaled_size without reading their photos.
   """
   train: Views
   test: Views
@@ -79,6 +159,26 @@ class Scene:
   point_colors: np.ndarray
   extent: float
   path: str
+  train_cameras: camera.Camera | None = None
+
+
+def all_train_cameras(scene) -> camera.Camera:
+  """Every training camera of `scene` (stacked), held or not."""
+  cams = getattr(scene, "train_cameras", None)
+  return scene.train.cameras if cams is None else cams
+
+
+def subset(views: Views, ids) -> Views:
+  """The views at positions `ids` of `views`, on the same canvas (`ids`
+  records where they came from)."""
+  ids = np.asarray(ids, np.int64)
+  take = lambda x: None if x is None else np.asarray(x)[ids]
+  return Views(cameras=jax.tree.map(lambda x: np.asarray(x)[ids],
+                                    views.cameras),
+               images=views.images[ids],
+               names=tuple(views.names[i] for i in ids),
+               masks=take(views.masks), sizes=take(views.sizes),
+               ids=ids if views.ids is None else views.ids[ids])
 
 
 def _name_tokens(names) -> list[list[str]]:
@@ -123,8 +223,9 @@ def _mask_path(scene_path: str, name: str) -> str:
 
 
 def _load_views(model: colmap.Model, idx, scene_path: str, downscale: int,
-                cache_dir: str, with_masks: bool) -> Views:
-  """Reads the images (and masks) of the views `idx` of `model`."""
+                cache_dir: str, with_masks: bool, keep=None) -> Views:
+  """Reads the images (and masks) of the views `idx` of `model`; with
+  `keep` (a set of positions in idx) only those views."""
   prescaled_dir = None
   if downscale > 1 and not model.undistorted:
     # RobustNeRF-style pre-scaled copies; for distorted scenes they are
@@ -133,8 +234,9 @@ def _load_views(model: colmap.Model, idx, scene_path: str, downscale: int,
     if not os.path.isdir(prescaled_dir):
       prescaled_dir = None
   resize_cache = os.path.join(cache_dir, f"images_{downscale}")
-  imgs, cams, first = [], [], None
-  for i in idx:
+  ids = [k for k in range(len(idx)) if keep is None or k in keep]
+  imgs, cams = [], []
+  for i in (idx[k] for k in ids):
     name = model.names[i]
     src = os.path.join(model.image_dir, name)
     size = tuple(int(s) for s in model.sizes[i])
@@ -154,13 +256,6 @@ def _load_views(model: colmap.Model, idx, scene_path: str, downscale: int,
           f"{src} gives a {w}x{h} image at downscale {downscale}; views need "
           f"at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE} pixels (one SSIM "
           "window); use a smaller --config.data.downscale or larger images.")
-    if first is None:
-      first = (name, w, h)
-    elif (w, h) != first[1:]:
-      raise ValueError(
-          f"{src} gives a {w}x{h} image but {first[0]} gives "
-          f"{first[1]}x{first[2]}; all views of a split must share one size "
-          "(use one COLMAP camera size).")
     # Pixel centres at +0.5 in both grids make continuous image coordinates
     # scale uniformly, so fx, cx (fy, cy) scale by new_W / W (new_H / H).
     sx, sy = w / size[0], h / size[1]
@@ -169,21 +264,20 @@ def _load_views(model: colmap.Model, idx, scene_path: str, downscale: int,
         model.rotations[i], model.translations[i], fx * sx, fy * sy,
         cx * sx, cy * sy, w, h))
     imgs.append(image)
-  names = tuple(model.names[i] for i in idx)
+  names = tuple(model.names[idx[k]] for k in ids)
+  sizes = canvas_sizes([(c.width, c.height) for c in cams],
+                       f"the views of {model.sparse_dir}")
   masks = _load_masks(scene_path, names, downscale,
-                      imgs[0].shape[:2]) if with_masks else None
-  stacked = camera.Camera(
-      rotation=np.stack([c.rotation for c in cams]),
-      translation=np.stack([c.translation for c in cams]),
-      fx=np.stack([c.fx for c in cams]), fy=np.stack([c.fy for c in cams]),
-      cx=np.stack([c.cx for c in cams]), cy=np.stack([c.cy for c in cams]),
-      width=first[1], height=first[2])
-  return Views(cameras=stacked, images=np.stack(imgs), names=names,
-               masks=masks)
+                      [im.shape[:2] for im in imgs],
+                      sizes) if with_masks else None
+  return Views(cameras=_stack(cams), images=on_canvas(imgs, sizes), names=names,
+               masks=masks, sizes=sizes,
+               ids=None if keep is None else np.asarray(ids))
 
 
-def _load_masks(scene_path, names, downscale, shape):
-  """bool [V, H, W], or None if `masks/` has none of these views' masks.
+def _load_masks(scene_path, names, downscale, shapes, sizes):
+  """bool [V, H, W] on the views' canvas (`sizes`, see on_canvas), or None
+  if `masks/` has none of these views' masks.
 
   A mask is binarised at its full resolution (grey >= MASK_THRESHOLD), and a
   downscaled pixel is transient where *any* of its source pixels is: loss
@@ -203,9 +297,8 @@ def _load_masks(scene_path, names, downscale, shape):
     raise FileNotFoundError(
         f"mask {missing} is missing although other training views have "
         "masks; add it (white = transient) or remove the masks/ folder.")
-  height, width = shape
   masks = []
-  for path in paths:
+  for path, (height, width) in zip(paths, shapes):
     full = images.read_image(path).mean(axis=-1) >= MASK_THRESHOLD
     if images.downscaled_size(full.shape[1], full.shape[0],
                               downscale) != (width, height):
@@ -213,7 +306,7 @@ def _load_masks(scene_path, names, downscale, shape):
                        f"pixels, which gives no {width}x{height} image at "
                        f"downscale {downscale}; make it its image's size.")
     masks.append(images.resize_area(full, width, height) > 0)
-  return np.stack(masks)
+  return on_canvas(masks, sizes, fill=False)
 
 
 def _extent(cameras: camera.Camera) -> float:
@@ -225,7 +318,8 @@ def _extent(cameras: camera.Camera) -> float:
 
 
 def load_scene(path: str, downscale: int = 1, train_split: str = "clutter",
-               cache_dir: str | None = None) -> Scene:
+               cache_dir: str | None = None,
+               train_views: Callable[[int], bool] | None = None) -> Scene:
   """Loads a COLMAP scene (or its pack, see `pack`) with its train/test split.
 
   Splits: with RobustNeRF names (`clutter`, `extra`, `clean` in the image
@@ -243,6 +337,9 @@ def load_scene(path: str, downscale: int = 1, train_split: str = "clutter",
     train_split: str, "clutter" or "clean" (RobustNeRF scenes only).
     cache_dir: str or None, writable folder for undistorted and resized
       images; default `colmap.default_cache_dir(path)`.
+    train_views: None (all), or which training views to hold, by position
+      among the training views: a process of a multi-host run reads only
+      its own views' photos (Scene.train_centers keeps every camera).
 
   Returns:
     A `Scene`.
@@ -252,18 +349,45 @@ def load_scene(path: str, downscale: int = 1, train_split: str = "clutter",
     raise ValueError(f"train_split must be one of {TRAIN_SPLITS}, got "
                      f"{train_split!r}.")
   if path.endswith(PACK_SUFFIX):
-    return _load_pack(path, downscale, train_split)
+    return _load_pack(path, downscale, train_split, train_views)
   cache_dir = cache_dir or colmap.default_cache_dir(path)
   model = colmap.load_model(path, cache_dir=cache_dir)
   train_idx, test_idx = _split_names(model.names, train_split,
                                      model.sparse_dir)
+  keep = None if train_views is None else {
+      k for k in range(len(train_idx)) if train_views(k)}
   train = _load_views(model, train_idx, path, downscale, cache_dir,
-                      with_masks=True)
+                      with_masks=True, keep=keep)
   test = _load_views(model, test_idx, path, downscale, cache_dir,
                      with_masks=False)
+  cams = train.cameras if keep is None else _poses(model, train_idx,
+                                                    downscale)
   return Scene(train=train, test=test, points=model.points,
                point_colors=model.point_colors.astype(np.float32) / 255,
-               extent=_extent(train.cameras), path=path)
+               extent=_extent(cams), path=path,
+               train_cameras=None if keep is None else cams)
+
+
+def _poses(model: colmap.Model, idx, downscale: int) -> camera.Camera:
+  """The stacked cameras of the views `idx` without reading their photos
+  (Scene.train_cameras): intrinsics scaled to images.downscaled_size."""
+  cams = []
+  for i in idx:
+    size = tuple(int(s) for s in model.sizes[i])
+    w, h = images.downscaled_size(*size, downscale)
+    fx, fy, cx, cy = model.intrinsics[i]
+    sx, sy = w / size[0], h / size[1]
+    cams.append(camera.Camera.create(
+        model.rotations[i], model.translations[i], fx * sx, fy * sy,
+        cx * sx, cy * sy, w, h))
+  return _stack(cams)
+
+
+def _stack(cams: list[camera.Camera]) -> camera.Camera:
+  """One Camera with a leading [V] axis, on the views' common canvas."""
+  return camera.Camera(
+      **{k: np.stack([getattr(c, k) for c in cams]) for k in _CAMERA_FIELDS},
+      width=max(c.width for c in cams), height=max(c.height for c in cams))
 
 
 def _train_splits(path: str, cache_dir: str | None) -> tuple[str, ...]:
@@ -283,6 +407,8 @@ def _views_arrays(prefix: str, views: Views) -> dict[str, np.ndarray]:
          for k in _CAMERA_FIELDS}
   out[f"{prefix}.size"] = np.array([views.cameras.width,
                                     views.cameras.height])
+  if views.sizes is not None:
+    out[f"{prefix}.sizes"] = views.sizes
   out[f"{prefix}.images"] = codes
   out[f"{prefix}.names"] = np.array(views.names, dtype=str)
   if views.masks is not None:
@@ -327,14 +453,17 @@ def _read_views(data, prefix: str, path: str) -> Views:
         **{k: getattr(cameras, k)[i] for k in _CAMERA_FIELDS},
         width=width, height=height), f"{path}: {prefix} camera {i}")
   masks = data.get(f"{prefix}.masks")
+  sizes = data.get(f"{prefix}.sizes")
   return Views(
       cameras=cameras,
       images=data[f"{prefix}.images"].astype(np.float32) / np.float32(_CODES),
       names=tuple(str(n) for n in data[f"{prefix}.names"]),
-      masks=None if masks is None else masks.astype(bool))
+      masks=None if masks is None else masks.astype(bool),
+      sizes=None if sizes is None else sizes.astype(np.int32))
 
 
-def _load_pack(path: str, downscale: int, train_split: str) -> Scene:
+def _load_pack(path: str, downscale: int, train_split: str,
+               train_views: Callable[[int], bool] | None) -> Scene:
   """The Scene that `pack` wrote to `path`."""
   if not os.path.isfile(path):
     raise FileNotFoundError(f"scene pack {path} does not exist; write it with "
@@ -359,6 +488,10 @@ def _load_pack(path: str, downscale: int, train_split: str) -> Scene:
                      f"not {train_split!r}; pack a scene that has it.")
   # Without RobustNeRF names train_split is ignored, as for the folder.
   train = _read_views(data, f"train.{train_split if splits else 'all'}", path)
+  cams = train.cameras
+  if train_views is not None:
+    train = subset(train, [k for k in range(len(train)) if train_views(k)])
   return Scene(train=train, test=_read_views(data, "test", path),
                points=data["points"], point_colors=data["point_colors"],
-               extent=_extent(train.cameras), path=path)
+               extent=_extent(cams), path=path,
+               train_cameras=None if train_views is None else cams)

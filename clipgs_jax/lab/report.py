@@ -16,6 +16,7 @@ from clipgs_jax import run as run_lib
 from clipgs_jax import semantic
 from clipgs_jax import train
 from clipgs_jax.data import images as images_lib
+from clipgs_jax.data import scene as scene_lib
 
 SOURCES = ("auto", "checkpoint", "ply")   # where the Gaussians come from
 TRAIN_RENDERS = os.path.join("renders", "train")   # colour, training views
@@ -92,7 +93,8 @@ def render_views(params, alive, views, cfg: config_lib.Config):
   """Colour and alpha of every view, all SH bands, cfg.train.background.
 
   Returns:
-    (float32 [V, H, W, 3] colour in [0, 1], float32 [V, H, W] alpha).
+    (V float32 [h, w, 3] colour in [0, 1], V float32 [h, w] alpha), each
+    the size of its view's photo.
   """
   colours, alphas, overflow = [], [], 0
   for image, alpha, dropped in evaluation.renders(params, alive, views, cfg):
@@ -103,7 +105,7 @@ def render_views(params, alive, views, cfg: config_lib.Config):
     logging.warning("%d tile-list entries dropped over %d views; raise "
                     "RenderConfig.tile_budget for exact renders.", overflow,
                     len(colours))
-  return np.stack(colours), np.stack(alphas)
+  return colours, alphas
 
 
 def _write_pngs(folder: str, names, pixels) -> None:
@@ -155,7 +157,9 @@ def render_masks(workdir: str, tau: float | None = None) -> dict:
   if scene.train.masks is None:
     logging.info("scene %s has no masks/: no IoU computed.", scene.path)
     return out
-  block = evaluation.iou_summary(scene.train.names, alphas, scene.train.masks)
+  masks = [scene_lib.crop(scene.train, i, m)
+           for i, m in enumerate(scene.train.masks)]
+  block = evaluation.iou_summary(scene.train.names, alphas, masks)
   block |= {"tau": tau, "num_gaussians_above_tau": num_chosen}
   metrics = _read_metrics(workdir)
   metrics["mask_iou"] = block

@@ -1,0 +1,261 @@
+"""The train step on a batch of views, sharded over devices.
+
+train.batch_size = B views per step, dealt into lanes over a device mesh
+(sharding.py). Each device renders and differentiates its lanes' views
+(view.render_and_grad; one after another, lax.scan, when it holds several),
+then the step combines them as one optimisation step:
+  * the loss is the mean of the views' losses: the views' gradients are
+    summed on each device and across devices (psum) and divided by B, and
+    every device applies the same Adam update to its replicated state;
+  * the densification statistics take every view separately, as B
+    one-view steps would: grad_accum gains |d L_v / d NDC xy| of each
+    view's own loss L_v (B times the gradient of the batch's mean loss
+    with respect to that view's splats: gsplat's normalisation, so the
+    3DGS threshold keeps its meaning), denom gains 1 for each view that
+    saw the Gaussian, max_radius the largest radius of the step;
+  * semantic evidence accumulates every view of the batch (each view's
+    increment, summed), and the residual map's histogram takes every
+    view's residuals before its one update per step;
+  * the step counter counts batches, so every schedule (learning rates,
+    densification, SH degree, the semantic schedule) counts optimisation
+    steps.
+B = 1 on photos of one size does not come here: train.train_step is that
+step, unchanged. Its equality tests and measured cost: BUILD_NOTES.md,
+"Multi-device training".
+"""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import optax
+from jax.sharding import PartitionSpec
+
+from clipgs_jax import camera as camera_lib
+from clipgs_jax import config as config_lib
+from clipgs_jax import densify
+from clipgs_jax import guidance
+from clipgs_jax import metrics as metrics_lib
+from clipgs_jax import optim
+from clipgs_jax import residual as residual_lib
+from clipgs_jax import semantic as semantic_lib
+from clipgs_jax import sh
+from clipgs_jax import sharding
+from clipgs_jax import state as state_lib
+from clipgs_jax import view as view_lib
+
+# Per-view metrics the step reports as their mean over the batch; the
+# per-step keys (guidance.per_step_keys) are kept per view.
+_MEAN_KEYS = ("loss", "l1", "ssim", "psnr", "semantic_loss",
+              "agreement_share")
+
+
+def _masked_mean(x: jax.Array, valid: jax.Array | None) -> jax.Array:
+  if valid is None:
+    return jnp.mean(x)
+  return jnp.sum(x * valid) / jnp.maximum(jnp.sum(valid), 1.0)
+
+
+def _evidence(vp: view_lib.ViewPass, scorer, *, pos, step, cam, bg, target,
+              valid, cfg: config_lib.Config):
+  """One view's semantic increment (SemanticStats) and per-view metrics,
+  as train.train_step accumulates them for its one view."""
+  sem = cfg.semantic
+  zero = state_lib.SemanticStats.zeros(vp.proj.depths.shape[0])
+  out = vp.out
+  due = guidance.scores_due(step, sem)
+  if sem.uses_residual:
+    transient = vp.rmap.transient
+    inc = semantic_lib.accumulate_pixel(zero, vp.probe_grad,
+                                        out.contribution, out.visible, due)
+    agree = semantic_lib.agreement(jax.lax.stop_gradient(out.image), target)
+    return inc, dict(
+        map_mean=_masked_mean(transient, valid), scored=due,
+        agreement_share=jnp.sum(transient * agree)
+        / jnp.maximum(jnp.sum(transient), 1.0))
+  if sem.localized:
+    evidence, weight = out.evidence, out.contribution
+    if sem.agreement:
+      # The static map is 0 outside a canvas's photo, so the second pass's
+      # sums leave those pixels out.
+      reproduced = view_lib.reproduced_evidence(
+          due, vp.proj, cam, bg, cfg, vp.evidence_map, out.image, target)
+      weight = semantic_lib.agreement_weight(weight, evidence, reproduced)
+      evidence = reproduced
+    inc = semantic_lib.accumulate_pixel(zero, evidence, weight, out.visible,
+                                        due)
+    return inc, dict(map_mean=_masked_mean(vp.evidence_map, valid),
+                     scored=due)
+  weight = None if sem.weighting == "visibility" else out.contribution
+  inc, scores = guidance.score_and_accumulate(
+      zero, out.image, out.visible, weight, pos, step, scorer, sem)
+  return inc, scores
+
+
+def _combine(a, b):
+  """Sums of two views' (grads, DensifyStats, evidence, histogram), the
+  largest radius of both."""
+  total = jax.tree.map(jnp.add, a, b)
+  dens = total[1].replace(max_radius=jnp.maximum(a[1].max_radius,
+                                                 b[1].max_radius))
+  return (total[0], dens) + total[2:]
+
+
+def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
+                *, cfg: config_lib.Config, num_devices: int):
+  """One optimisation step, as one device runs it (inside shard_map).
+
+  Args:
+    state: the replicated TrainState.
+    lanes: this device's B / num_devices lanes (sharding.Lanes).
+    scorer: the guidance scorer with this device's lanes of its per-view
+      fields (sharding.scorer_lanes), or None.
+    cfg: the config (static).
+    num_devices: D, the mesh's size.
+  Returns:
+    (state, metrics), both the same on every device: train.train_step's
+    metrics, the per-view ones averaged over the batch except the
+    per-step keys (view, scored and scores: int / float [B]).
+  """
+  guidance.check_scorer(cfg.semantic, scorer, "batch_step.device_step")
+  batch = cfg.train.batch_size
+  local = batch // num_devices
+  step = state.step
+  capacity = state.capacity
+  height, width = lanes.images.shape[2:4]
+  bg = view_lib.background(state.key, step, cfg)
+  degree = sh.active_degree(step, cfg.densify.sh_degree_every,
+                           cfg.gaussians.sh_degree)
+  first = jax.lax.axis_index(sharding.AXIS) * local
+
+  def one_view(i):
+    lane = first + i
+    key = view_lib.lane_key(state.key, lane)
+    pos = view_lib.lane_view(key, step, lanes.counts[i],
+                             lanes.images.shape[1])
+    cam = camera_lib.camera_at(jax.tree.map(lambda x: x[i], lanes.cameras),
+                               pos)
+    target = lanes.images[i, pos]
+    canvas, valid, w, h = None, None, width, height
+    if lanes.sizes is not None:
+      size = lanes.sizes[i, pos]
+      valid = sharding.valid_mask(size, height, width)
+      canvas, w, h = (size, valid), size[0], size[1]
+    view_scorer = sharding.scorer_at(scorer, i)
+    vp = view_lib.render_and_grad(
+        state, view_scorer, cfg, view=pos, cam=cam, target=target, bg=bg,
+        degree=degree, key=key, canvas=canvas)
+    proj = jax.lax.stop_gradient(vp.proj)
+    seen = densify.on_screen(proj, w, h) & state.alive
+    dens = densify.accumulate(state_lib.DensifyStats.zeros(capacity),
+                              vp.grad2d, seen, densify.screen_radius(proj),
+                              w, h)
+    metrics = {"loss": vp.loss, "l1": vp.terms["l1"],
+               "ssim": vp.terms["ssim"],
+               "psnr": metrics_lib.psnr(vp.out.image, target, valid),
+               "num_overflow": vp.out.num_overflow,
+               "max_tile_count": vp.out.max_tile_count,
+               "view": lane + pos * batch}
+    evidence, hist = None, None
+    if scorer is not None:
+      evidence, extra = _evidence(vp, view_scorer, pos=pos, step=step,
+                                  cam=cam, bg=bg, target=target,
+                                  valid=valid, cfg=cfg)
+      metrics.update(extra, semantic_loss=vp.terms["semantic_loss"])
+      if vp.rmap is not None:
+        hist = residual_lib.counts(vp.rmap.residual, valid)
+    return (vp.grads, dens, evidence, hist), metrics
+
+  if local == 1:
+    sums, per_view = one_view(0)
+    per_view = jax.tree.map(lambda x: x[None], per_view)
+  else:
+    # The device's views one after another: one compiled view, whatever
+    # the batch.
+    def body(carry, i):
+      out, metrics = one_view(i)
+      return _combine(carry, out), metrics
+    zeros = (jax.tree.map(jnp.zeros_like, state.params),
+             state_lib.DensifyStats.zeros(capacity),
+             None if scorer is None else state_lib.SemanticStats.zeros(
+                 capacity),
+             (jnp.zeros((residual_lib.HISTOGRAM_BINS,), jnp.float32)
+              if cfg.semantic.uses_residual and scorer is not None
+              else None))
+    sums, per_view = jax.lax.scan(body, zeros, jnp.arange(local))
+  grads, dens, evidence, hist = sums
+  grads, grad_accum, denom, evidence, hist = jax.lax.psum(
+      (grads, dens.grad_accum, dens.denom, evidence, hist), sharding.AXIS)
+  max_radius = jax.lax.pmax(dens.max_radius, sharding.AXIS)
+  per_view = jax.lax.all_gather(per_view, sharding.AXIS, tiled=True)
+
+  # The batch's mean loss; dead rows get no gradient from the render.
+  grads = jax.tree.map(
+      lambda g: jnp.where(
+          state.alive.reshape((-1,) + (1,) * (g.ndim - 1)), g / batch, 0.0),
+      grads)
+  tx = optim.make(cfg.optim, cfg.scene_extent, cfg.train.steps)
+  updates, opt_state = tx.update(grads, state.opt_state, state.params)
+  params = optax.apply_updates(state.params, updates)
+  old = state.densify
+  stats = state_lib.DensifyStats(
+      grad_accum=old.grad_accum + grad_accum, denom=old.denom + denom,
+      max_radius=jnp.maximum(old.max_radius, max_radius))
+  semantic_stats, maps = state.semantic, state.maps
+  if evidence is not None:
+    semantic_stats = jax.tree.map(jnp.add, state.semantic, evidence)
+  if hist is not None:
+    maps = residual_lib.update(maps, quantile=cfg.semantic.residual_quantile,
+                               decay=cfg.semantic.residual_decay,
+                               median_factor=(
+                                   cfg.semantic.residual_median_factor),
+                               minimum=cfg.semantic.residual_min_threshold,
+                               histogram=hist)
+  metrics = {k: (jnp.mean(v) if k in _MEAN_KEYS else v)
+             for k, v in per_view.items()}
+  metrics.update(
+      num_overflow=jnp.sum(per_view["num_overflow"]),
+      max_tile_count=jnp.max(per_view["max_tile_count"]),
+      num_alive=jnp.sum(state.alive, dtype=jnp.int32), sh_degree=degree,
+      means_lr=optim.means_lr(step, cfg.optim, cfg.scene_extent,
+                              cfg.train.steps))
+  if cfg.semantic.uses_residual:
+    metrics["residual_threshold"] = state.maps.threshold
+  for field in optim.FIELDS:
+    metrics[f"grad_norm/{field}"] = optax.tree.norm(getattr(grads, field))
+  new_state = state.replace(params=params, opt_state=opt_state,
+                            densify=stats, semantic=semantic_stats,
+                            step=step + 1, maps=maps)
+  return new_state, metrics
+
+
+def sharded_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
+                 *, cfg: config_lib.Config, mesh):
+  """device_step on every device of `mesh` (shard_map): the state and
+  metrics replicated, the lanes and the scorer's per-view fields sharded."""
+  body = functools.partial(device_step, cfg=cfg, num_devices=mesh.size)
+  # check_vma off: the rasterizer's loops carry values that would all need
+  # marking as varying over the mesh; the outputs are replicated because
+  # they are made from psums and the replicated state only.
+  return jax.shard_map(
+      body, mesh=mesh,
+      in_specs=(PartitionSpec(), sharding.lanes_specs(lanes),
+                sharding.scorer_specs(scorer)),
+      out_specs=PartitionSpec(), check_vma=False)(state, lanes, scorer)
+
+
+@functools.lru_cache(maxsize=None)
+def _make(cfg: config_lib.Config, mesh):
+  return jax.jit(functools.partial(sharded_step, cfg=cfg, mesh=mesh),
+                 donate_argnums=(0,))
+
+
+def make_step(cfg: config_lib.Config, mesh):
+  """Jitted sharded_step(state, lanes, scorer) -> (state, metrics); the
+  state is donated. Cached by the config's compiled part and the mesh, as
+  train.make_train_step."""
+  return _make(config_lib.compiled_part(
+      cfg, config_lib.SEMANTIC_FIELDS_NOT_IN_STEP), mesh)
+
+
+make_step.cache_clear = _make.cache_clear

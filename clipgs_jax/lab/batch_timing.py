@@ -1,0 +1,112 @@
+"""Views per second of a batch of views per step, on one or more devices.
+
+experiments/bench.py --bench=views: the train step at batch sizes B on
+mesh sizes D, all in one process on the same state (the scene's step-0
+state, or a stand-in of a densified model) and the same views. Every
+variant is compiled and warmed up first, then the variants are timed
+round-robin (one step each in turn, so a change in the machine's load
+shifts them all alike). Wall and process-CPU times are both reported: CPU
+time sums every thread, so on a shared machine it shows what the step
+costs when wall time only shows what it got.
+"""
+
+import dataclasses
+import os
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from clipgs_jax import batch_step
+from clipgs_jax import config as config_lib
+from clipgs_jax import sharding
+from clipgs_jax import train
+from clipgs_jax.data import scene as scene_lib
+from clipgs_jax.lab import timing
+
+
+def views_per_second(scene_path: str, downscale: int, *,
+                     variants: list[tuple[int, int]], steps: int,
+                     render: config_lib.RenderConfig,
+                     num_gaussians: int = 0, warmup: int = 2
+                     ) -> list[dict]:
+  """Times the train step of each (B, D) variant.
+
+  (1, 1) is train.train_step, the one-view step every B = 1 run on photos
+  of one size takes; the others are batch_step on the first D devices.
+
+  Args:
+    scene_path, downscale: the scene (a folder or pack).
+    variants: (batch size B, devices D) pairs, D dividing B.
+    steps: timed steps per variant.
+    render: the rasterizer settings.
+    num_gaussians: 0 for the scene's step-0 state, else a stand-in with
+      this many Gaussians (timing.stand_in).
+    warmup: untimed steps after the compiling one.
+  Returns:
+    One dict per variant: compile_s (the first step), mean wall and CPU
+    ms per step, views per second of wall time and per CPU second, and
+    the load average before and after.
+  """
+  load_before = os.getloadavg()[0]
+  scene = scene_lib.load_scene(scene_path, downscale=downscale)
+  base = train.resolve(config_lib.Config(render=render), scene)
+  state0 = train.initial_state(base, scene)
+  if num_gaussians:
+    params, alive = timing.stand_in(state0.params, state0.alive,
+                                    num_gaussians)
+    state0 = train.init_state(base, params, alive)
+  fns, data, states, compile_s = {}, {}, {}, {}
+  for size, count in variants:
+    name = f"B={size} D={count}"
+    cfg = dataclasses.replace(base, train=dataclasses.replace(
+        base.train, batch_size=size))
+    state = jax.tree.map(jnp.copy, state0)
+    if (size, count) == (1, 1):
+      fn, views = train.make_train_step(cfg), train.make_batch(scene.train)
+    else:
+      mesh = sharding.make_mesh(size, jax.devices()[:count])
+      fn = batch_step.make_step(cfg, mesh)
+      views, _ = sharding.lanes_of(scene, size, mesh)
+      state = sharding.replicate(state, mesh)
+    tic = time.perf_counter()
+    state, _ = jax.block_until_ready(fn(state, views, None))
+    compile_s[name] = time.perf_counter() - tic
+    for _ in range(warmup):
+      state, _ = fn(state, views, None)
+    fns[name], data[name], states[name] = fn, views, jax.block_until_ready(
+        state)
+  wall = {n: [] for n in fns}
+  cpu = {n: [] for n in fns}
+  for _ in range(steps):
+    for name, fn in fns.items():
+      tic, cpu_tic = time.perf_counter(), time.process_time()
+      states[name], _ = jax.block_until_ready(
+          fn(states[name], data[name], None))
+      wall[name].append(time.perf_counter() - tic)
+      cpu[name].append(time.process_time() - cpu_tic)
+  load_after = os.getloadavg()[0]
+  h, w = scene.train.images.shape[1:3]
+  ref = None
+  out = []
+  for (size, count), name in zip(variants, fns):
+    mw, mc = statistics.fmean(wall[name]), statistics.fmean(cpu[name])
+    row = {
+        "variant": name, "batch_size": size, "devices": count,
+        "scene": scene_path, "downscale": downscale, "image": [w, h],
+        "num_gaussians": int(np.sum(np.asarray(state0.alive))),
+        "steps": steps, "compile_s": round(compile_s[name], 1),
+        "mean_wall_ms": round(1e3 * mw, 1), "mean_cpu_ms": round(1e3 * mc, 1),
+        "views_per_s": round(size / mw, 3),
+        "views_per_cpu_s": round(size / mc, 3),
+        "load_before": load_before, "load_after": load_after,
+        "device": jax.devices()[0].device_kind,
+        "host_cores": os.cpu_count()}
+    ref = ref or row
+    row["speedup_wall"] = round(row["views_per_s"] / ref["views_per_s"], 3)
+    row["speedup_cpu"] = round(row["views_per_cpu_s"]
+                               / ref["views_per_cpu_s"], 3)
+    out.append(row)
+  return out

@@ -1,0 +1,207 @@
+"""One training view: which view a step draws, and its render and gradients.
+
+train.train_step (one view per step) and batch_step (a batch of views
+over devices) share these, so a view of a batch is rendered, fitted and
+differentiated exactly as the one view of a one-view step.
+"""
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from clipgs_jax import camera as camera_lib
+from clipgs_jax import config as config_lib
+from clipgs_jax import gaussians
+from clipgs_jax import guidance
+from clipgs_jax import losses
+from clipgs_jax import map_sources
+from clipgs_jax import project
+from clipgs_jax import rasterize
+from clipgs_jax import semantic as semantic_lib
+from clipgs_jax import state as state_lib
+
+# fold_in tags that give each use of the run's key its own stream (tag 3,
+# densification, is train.fit's).
+_VIEW_STREAM = 1
+_BACKGROUND_STREAM = 2
+_RESIDUAL_STREAM = 4
+_LANE_STREAM = 5
+
+
+def view_index(key: jax.Array, step: jax.Array, num_views: int
+               ) -> jax.Array:
+  """int32 [], the training view of `step`.
+
+  Views are visited in a fresh random permutation each epoch (epoch =
+  step // V), as the reference 3DGS loop does; the permutation is a pure
+  function of (key, epoch), so a resumed run sees the same views.
+  """
+  epoch_key = jax.random.fold_in(jax.random.fold_in(key, _VIEW_STREAM),
+                                 step // num_views)
+  return jax.random.permutation(epoch_key, num_views)[step % num_views]
+
+
+def lane_view(key: jax.Array, step: jax.Array, count: jax.Array,
+              length: int) -> jax.Array:
+  """int32 [], the position in its lane of the view of `step`.
+
+  view_index for a lane of `count` views (traced, at most the static
+  `length`): each epoch's permutation of `length` positions with those
+  past `count` left out, so a full lane visits its views exactly as
+  view_index(key, step, length) does.
+  """
+  epoch_key = jax.random.fold_in(jax.random.fold_in(key, _VIEW_STREAM),
+                                 step // count)
+  perm = jax.random.permutation(epoch_key, length)
+  order = perm[jnp.argsort(perm >= count, stable=True)]
+  return order[step % count]
+
+
+def lane_key(key: jax.Array, lane: jax.Array) -> jax.Array:
+  """The key of lane `lane` of a batch (sharding.py): its view order and
+  its residual map's sampling. Lane 0 has the run's key, so a batch of one
+  lane visits the views of the one-view step in the same order."""
+  other = jax.random.fold_in(jax.random.fold_in(key, _LANE_STREAM), lane)
+  data = jnp.where(lane == 0, jax.random.key_data(key),
+                   jax.random.key_data(other))
+  return jax.random.wrap_key_data(data, impl=jax.random.key_impl(key))
+
+
+def background(key: jax.Array, step: jax.Array, cfg: config_lib.Config
+               ) -> jax.Array:
+  """float [3]: a uniform random colour per step, or the fixed background."""
+  if cfg.train.random_background:
+    k = jax.random.fold_in(jax.random.fold_in(key, _BACKGROUND_STREAM), step)
+    return jax.random.uniform(k, (3,), jnp.float32)
+  return jnp.asarray(cfg.train.background, jnp.float32)
+
+
+class ViewPass(NamedTuple):
+  """One view's render, loss and gradients (`render_and_grad`).
+
+  Attributes:
+    loss: float [], the view's loss.
+    out: the rasterize.RenderOutput.
+    proj: the project.Projected splats the render drew.
+    terms: {"l1", "ssim"} of the photometric loss, and "semantic_loss"
+      with a scorer.
+    rmap: the view's map_sources.ResidualMap, or None.
+    grads: GaussianParams, d loss / d params.
+    grad2d: float [C, 2], d loss / d screen position, in pixels.
+    probe_grad: float [C], each Gaussian's sum_i w_ij m_i of the residual
+      map (from the backward pass), or None.
+    evidence_map: float [H, W], the static map the render summed per
+      Gaussian (out.evidence), or None.
+  """
+  loss: jax.Array
+  out: rasterize.RenderOutput
+  proj: project.Projected
+  terms: dict[str, jax.Array]
+  rmap: map_sources.ResidualMap | None
+  grads: gaussians.GaussianParams
+  grad2d: jax.Array
+  probe_grad: jax.Array | None
+  evidence_map: jax.Array | None
+
+
+def render_and_grad(state: state_lib.TrainState, scorer,
+                    cfg: config_lib.Config, *, view: jax.Array,
+                    cam: camera_lib.Camera, target: jax.Array,
+                    bg: jax.Array, degree: jax.Array, key: jax.Array,
+                    canvas: tuple[jax.Array, jax.Array] | None = None
+                    ) -> ViewPass:
+  """Renders one training view and differentiates its loss.
+
+  Renders the view (project + rasterize, with a zero offset on the splat
+  centres whose gradient is the screen-space positional gradient) and
+  takes the 3DGS loss (1 - l) L1 + l (1 - SSIM), plus, with a scorer, the
+  CLIP opacity term from reg_start. With pixel evidence the view's map m
+  goes into the render, which returns each Gaussian's sum w m beside sum w,
+  and (loss_masking) the photometric loss is weighted by 1 - m.
+
+  Args:
+    state: the TrainState before the step.
+    scorer: None, or the guidance scorer, indexed by `view`.
+    cfg: the config (static).
+    view: int32 [], the view's index into the scorer's maps.
+    cam, target: the view's camera and float [H, W, 3] photo.
+    bg: float [3], the background; degree: int32 [], the SH degree.
+    key: the key the residual map's warm-up samples from (folded with the
+      step).
+    canvas: None, or (int32 [2] width and height of the view's photo, float
+      [H, W] 1 inside it): the view lies in the top-left corner of a larger
+      canvas, and no pixel outside it is drawn, fitted or counted.
+  """
+  step = state.step
+  sem = cfg.semantic
+  localized = scorer is not None and sem.localized
+  # The residual map depends on the render: it cannot go into the render's
+  # pass, so its per-Gaussian sums come from the backward pass (probe).
+  dynamic = scorer is not None and sem.uses_residual
+  size, valid = (None, None) if canvas is None else canvas
+  evidence_map = (jax.lax.stop_gradient(scorer.score_map(view))
+                  if localized and not dynamic else None)
+  loss_weight = (1.0 - evidence_map
+                 if evidence_map is not None and sem.loss_masking else None)
+  sample_key = jax.random.fold_in(
+      jax.random.fold_in(key, _RESIDUAL_STREAM), step)
+
+  def loss_fn(params, offset, probe):
+    proj = project.project(params, state.alive, cam, near=cfg.render.near,
+                           sh_degree=degree)
+    proj = proj.replace(means2d=proj.means2d + offset)
+    out = rasterize.rasterize(proj, cam, bg, cfg.render,
+                              evidence_map=evidence_map, probe=probe,
+                              valid_size=size)
+    weight, rmap = loss_weight, None
+    if dynamic:
+      rmap = map_sources.residual_map(scorer, state.maps, view, out.image,
+                                      target, step, sample_key, sem,
+                                      valid=valid)
+      if sem.loss_masking:
+        weight = rmap.loss_weight
+    loss, terms = losses.photometric(out.image, target,
+                                     cfg.train.lambda_dssim, weight,
+                                     valid=valid)
+    if dynamic:
+      # Worth exactly 0 (the probe is 0); its gradient with respect to the
+      # probe is each Gaussian's sum_i w_ij m_i.
+      loss = loss + jnp.sum(jax.lax.stop_gradient(rmap.transient)
+                            * out.probe_image)
+    if scorer is not None:
+      terms["semantic_loss"] = guidance.opacity_regularizer(
+          state.semantic, params.opacity_logits, state.alive, step, cfg)
+      loss = loss + terms["semantic_loss"]
+    return loss, (out, proj, terms, rmap)
+
+  offset = jnp.zeros((state.capacity, 2), state.params.means.dtype)
+  probe_grad = None
+  if dynamic:
+    probe = jnp.zeros((state.capacity,), state.params.means.dtype)
+    (loss, (out, proj, terms, rmap)), (grads, grad2d, probe_grad) = (
+        jax.value_and_grad(loss_fn, argnums=(0, 1, 2), has_aux=True)(
+            state.params, offset, probe))
+  else:
+    (loss, (out, proj, terms, rmap)), (grads, grad2d) = jax.value_and_grad(
+        loss_fn, argnums=(0, 1), has_aux=True)(state.params, offset, None)
+  return ViewPass(loss, out, proj, terms, rmap, grads, grad2d, probe_grad,
+                  evidence_map)
+
+
+def reproduced_evidence(due, proj, cam, bg, cfg, evidence_map, image,
+                        target):
+  """float [C], sum_i w_ij m_i a_i with a = semantic.agreement(render, photo).
+
+  The agreement needs the finished render, so this is a second forward
+  pass of the same projected splats (no gradient), run only on scoring
+  steps (lax.cond); other steps return zeros.
+  """
+  proj = jax.lax.stop_gradient(proj)
+  weighted = evidence_map * semantic_lib.agreement(
+      jax.lax.stop_gradient(image), target)
+  return jax.lax.cond(
+      due,
+      lambda: rasterize.rasterize(proj, cam, bg, cfg.render,
+                                  evidence_map=weighted).evidence,
+      lambda: jnp.zeros_like(proj.depths))
