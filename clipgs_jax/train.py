@@ -29,6 +29,7 @@ from clipgs_jax import residual as residual_lib
 from clipgs_jax import semantic as semantic_lib
 from clipgs_jax import sh
 from clipgs_jax import state as state_lib
+from clipgs_jax import summary
 
 _log = logging.getLogger(__name__)
 
@@ -323,7 +324,8 @@ def initial_state(cfg: config_lib.Config, scene) -> state_lib.TrainState:
 
 def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
         resume: bool = False, progress: bool = True,
-        stop_after: int | None = None) -> loop.FitResult:
+        stop_after: int | None = None,
+        summary_dir: str | None = None) -> loop.FitResult:
   """Trains on scene.train, tracking test PSNR on scene.test.
 
   Each step runs the jitted train step, then the host hooks of `loop`, in
@@ -348,6 +350,8 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
     progress: show a tqdm progress bar.
     stop_after: stop once this many steps are done, with a checkpoint, as
       a preemption would (a later resume=True call finishes the run).
+    summary_dir: TensorBoard event files go here (summary.Writer), or
+      nowhere when None.
   """
   guidance.check_scorer(cfg.semantic, scorer, "train.fit")
   os.makedirs(workdir, exist_ok=True)
@@ -363,14 +367,17 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
       end=total if stop_after is None else min(total, stop_after),
       densify_key=jax.random.fold_in(state.key, _DENSIFY_STREAM),
       scorer=scorer)
-  if start == 0 and cfg.train.eval_every and loop.eval_due(0, ctx):
-    flog = loop.eval_point(state, flog, 0, ctx)
-  if progress:
-    import tqdm  # pylint: disable=g-import-not-at-top
-    ctx = dataclasses.replace(ctx, bar=tqdm.tqdm(
-        total=total, initial=start, dynamic_ncols=True, mininterval=1.0))
-  flog = loop.start_clock(flog)
+  if summary_dir is not None:
+    ctx = dataclasses.replace(ctx, summary=summary.Writer(summary_dir,
+                                                          start_step=start))
   try:
+    if start == 0 and cfg.train.eval_every and loop.eval_due(0, ctx):
+      flog = loop.eval_point(state, flog, 0, ctx)
+    if progress:
+      import tqdm  # pylint: disable=g-import-not-at-top
+      ctx = dataclasses.replace(ctx, bar=tqdm.tqdm(
+          total=total, initial=start, dynamic_ncols=True, mininterval=1.0))
+    flog = loop.start_clock(flog)
     for step in range(start + 1, ctx.end + 1):   # `step` = steps done after
       state, metrics = step_fn(state, batch, scorer)
       flog = loop.record_step(flog, step, metrics, ctx)
@@ -392,6 +399,8 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
   finally:
     if ctx.bar is not None:
       ctx.bar.close()
+    if ctx.summary is not None:
+      ctx.summary.close()
   jax.block_until_ready(state)
   if start >= total:
     _log.info("checkpoint is already at step %d >= %d steps", start, total)
