@@ -108,6 +108,8 @@ class Viewer:
     self.selected = None          # (split, index) of the clicked view
     self.lock = threading.Lock()  # callbacks run in viser's thread pool
     self.nodes = []
+    self.opacity_order = [np.argsort(-r.splats.opacities[:, 0],
+                                     kind="stable") for r in runs]
     for i, run in enumerate(runs):
       s = run.splats
       self.nodes.append(server.scene.add_gaussian_splats(
@@ -132,6 +134,11 @@ class Viewer:
     self.label = gui.add_markdown("")
     self.show_splats = gui.add_checkbox("Gaussians", True)
     self.show_splats.on_update(lambda _: self._update_splats())
+    # Software WebGL (no GPU) draws ~1 frame/s per 10k Gaussians on the
+    # 2-core box: drawing only the most opaque share keeps it usable.
+    self.drawn = gui.add_slider("share drawn (most opaque)", 0.01, 1.0,
+                                0.01, 1.0)
+    self.drawn.on_update(lambda _: self._update_splats())
     with gui.add_folder("transient scores"):
       self.by_score = gui.add_checkbox("colour by s_j", False)
       self.tau = gui.add_slider("tau", 0.0, 1.0, 0.001, 0.5)
@@ -198,10 +205,17 @@ class Viewer:
       opacities = run.splats.opacities
       if flagged is not None and self.hide.value:
         opacities = np.where(flagged[:, None], 0.0, opacities)
-      s = run.splats
-      node.set_gaussians(s.centers, s.covariances, rgbs,
-                         opacities.astype(np.float32))
+      s, keep = run.splats, self._drawn_rows()
+      node.set_gaussians(s.centers[keep], s.covariances[keep], rgbs[keep],
+                         opacities[keep].astype(np.float32))
       self.prune_text.content = self._prune_summary()
+
+  def _drawn_rows(self) -> np.ndarray:
+    """int [M], the rows drawn (in row order): all, or the most opaque
+    share of them."""
+    order = self.opacity_order[self.shown]
+    return np.sort(order[:max(1, int(np.ceil(self.drawn.value
+                                               * len(order))))])
 
   def _prune_summary(self) -> str:
     run = self._run()

@@ -93,6 +93,9 @@ def main():
   parser.add_argument("--gaussians", type=int, default=200_000)
   parser.add_argument("--port", type=int, default=8097)
   parser.add_argument("--seconds", type=float, default=10.0)
+  parser.add_argument("--shares", default="1.0",
+                      help="comma-separated shares drawn (the panel's "
+                      "slider) to count frames at")
   args = parser.parse_args()
   if not os.path.exists(os.path.join(args.out, train.CHECKPOINT_NAME)):
     fake_run(args.like, args.out, args.gaussians)
@@ -111,14 +114,18 @@ def main():
     while page.drawn_frames() == 0:
       time.sleep(0.1)
     first = time.monotonic() - tic
-    fps = page.frames_per_second(args.seconds)
+    fps = {}
+    for share in (float(x) for x in args.shares.split(",")):
+      page.set_number("share drawn (most opaque)", share)
+      time.sleep(5.0)
+      fps[share] = page.frames_per_second(args.seconds)
     size = page.viewport()
   finally:
     page.close()
     proc.send_signal(2)
     proc.wait(timeout=60)
   print(json.dumps({"gaussians": args.gaussians, "start_seconds": starts,
-                    "page_to_first_frame_seconds": first,
+                    "page_ready_seconds": first,
                     "orbit_fps": fps, "viewport": size,
                     "load_average": os.getloadavg()}))
 

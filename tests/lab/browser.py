@@ -86,6 +86,9 @@ class Browser:
                                    options=options)
     self.driver.execute_cdp_cmd("Page.addScriptToEvaluateOnNewDocument",
                                 {"source": _PAGE_SETUP})
+    # A software-rendered frame of a large scene blocks the page's thread
+    # for tens of seconds, and every script waits for it.
+    self.driver.set_script_timeout(300)
     # The page gets exactly `window` (headless Chromium's window size
     # counts a toolbar that it does not draw).
     self.driver.execute_cdp_cmd("Emulation.setDeviceMetricsOverride", {
@@ -117,6 +120,16 @@ class Browser:
     label = self.driver.find_element(
         "xpath", f"//label[normalize-space()='{text}']")
     label.click()
+
+  def set_number(self, text: str, value: float) -> None:
+    """Types `value` into the number box of the slider labelled `text`."""
+    # pylint: disable=g-import-not-at-top
+    from selenium.webdriver.common import keys
+    box = self.driver.find_element(
+        "xpath", f"//label[normalize-space()='{text}']/following::input"
+        "[contains(@class, 'NumberInput')][1]")
+    box.send_keys(keys.Keys.CONTROL, "a")
+    box.send_keys(str(value), keys.Keys.ENTER)
 
   def wait_for_text(self, text: str, timeout: float) -> None:
     end = time.monotonic() + timeout

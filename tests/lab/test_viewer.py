@@ -198,6 +198,12 @@ def test_viewer_panel_in_process(guided_run):
                                   moved)
     view.hide.value = True
     assert (node.opacities[flagged(low_tau)] == 0).all()
+    view.hide.value = False
+    view.drawn.value = 0.25                # the most opaque quarter
+    opacities = np.sort(run.splats.opacities[:, 0])
+    assert len(node.opacities) == int(np.ceil(0.25 * len(opacities)))
+    assert node.opacities.min() >= np.floor(opacities[
+        -len(node.opacities)] * 255) - 1      # stored as uint8
     view.run_choice.value = view.run_choice.options[1]
     assert view.nodes[1].visible and not view.nodes[0].visible
   finally:
