@@ -19,9 +19,11 @@ from clipgs_jax import evaluation
 from clipgs_jax import gaussians
 from clipgs_jax import guidance
 from clipgs_jax import ply
+from clipgs_jax import residual
 from clipgs_jax import run as run_lib
 from clipgs_jax import semantic
 from clipgs_jax import sh
+from clipgs_jax import state as state_lib
 from clipgs_jax import train
 from clipgs_jax.data import default_scene
 
@@ -73,8 +75,12 @@ class ViewedRun:
     info: run.json (scene, downscale, guidance label, ...).
     cfg: the resolved config.Config of the run.
     params: GaussianParams (numpy) of the N alive rows.
-    stats: SemanticStats (numpy, [N]) from the checkpoint of a guided run,
-      else None (vanilla, or a run with only its PLY).
+    stats: state.SemanticStats (numpy, [N]) from the checkpoint of a
+      guided run, else None (vanilla, or a run with only its PLY).
+    maps: the residual map's statistics (residual.ResidualState, numpy)
+      from the checkpoint of a run that used it, else None.
+    degree: int, the SH degree the run's last steps used (all bands for
+      a run with only its PLY).
     splats: Splats of `params`.
     pruned: Splats of the rows the run's semantic prunes removed
       (pruned.ply), or None where the folder has none.
@@ -83,7 +89,9 @@ class ViewedRun:
   info: dict[str, Any]
   cfg: config_lib.Config
   params: gaussians.GaussianParams
-  stats: semantic.SemanticStats | None
+  stats: state_lib.SemanticStats | None
+  maps: residual.ResidualState | None
+  degree: int
   splats: Splats
   pruned: Splats | None
 
@@ -123,22 +131,30 @@ def load(path: str) -> ViewedRun:
                                                      run_lib.CONFIG_JSON)))
   ckpt = os.path.join(path, train.CHECKPOINT_NAME)
   ply_path = os.path.join(path, run_lib.POINT_CLOUD_PLY)
-  stats = None
+  stats, maps = None, None
   if os.path.isfile(ckpt):
     arrays = checkpoint.read_arrays(ckpt, *(
         checkpoint.STATE_PREFIX + n for n in ("params/", "semantic/",
-                                              "alive")))
+                                              "maps/", "alive", "step")))
     field = lambda group, n: arrays[f"{checkpoint.STATE_PREFIX}{group}{n}"]
     alive = field("alive", "")
     params = gaussians.GaussianParams(**{
         f.name: field("params/", f.name)[alive]
         for f in dataclasses.fields(gaussians.GaussianParams)})
     if cfg.semantic.enabled:
-      stats = semantic.SemanticStats(**{
+      stats = state_lib.SemanticStats(**{
           f.name: field("semantic/", f.name)[alive]
-          for f in dataclasses.fields(semantic.SemanticStats)})
+          for f in dataclasses.fields(state_lib.SemanticStats)})
+    if cfg.semantic.uses_residual:
+      maps = residual.ResidualState(**{
+          f.name: field("maps/", f.name)
+          for f in dataclasses.fields(residual.ResidualState)})
+    degree = int(sh.active_degree(int(field("step", "")),
+                                  cfg.densify.sh_degree_every,
+                                  cfg.gaussians.sh_degree))
   elif os.path.isfile(ply_path):
     params = jax.tree.map(np.asarray, ply.read_ply(ply_path)[0])
+    degree = params.sh_degree
   else:
     raise FileNotFoundError(
         f"run folder {path} has neither {train.CHECKPOINT_NAME} nor "
@@ -148,7 +164,8 @@ def load(path: str) -> ViewedRun:
   pruned = (to_splats(ply.read_ply(pruned_path)[0])
             if os.path.isfile(pruned_path) else None)
   return ViewedRun(path=path, info=info, cfg=cfg, params=params,
-                   stats=stats, splats=to_splats(params), pruned=pruned)
+                   stats=stats, maps=maps, degree=degree,
+                   splats=to_splats(params), pruned=pruned)
 
 
 def check_same_scene(a: ViewedRun, b: ViewedRun) -> None:
@@ -225,11 +242,7 @@ def render(run: ViewedRun, scene, split: str, index: int,
            hidden=None) -> np.ndarray:
   """float32 [H, W, 3], our render of a view (CPU), without the rows of
   bool [N] `hidden` (a prune preview)."""
-  vs = views(scene, split)
-  one = dataclasses.replace(
-      vs, cameras=jax.tree.map(lambda x: x[index:index + 1], vs.cameras),
-      images=vs.images[index:index + 1], names=vs.names[index:index + 1],
-      masks=None)
+  one = _one_view(views(scene, split), index)
   n = run.params.means.shape[0]
   alive = np.ones(n, bool) if hidden is None else ~np.asarray(hidden)
   image = next(evaluation.renders(run.params, jnp.asarray(alive), one,
@@ -246,18 +259,37 @@ def ground_truth_mask(scene, split: str, index: int) -> np.ndarray | None:
 
 def transient_map(run: ViewedRun, scene, split: str, index: int
                   ) -> np.ndarray | None:
-  """float32 [H, W] in [0, 1]: the per-pixel transient map guidance read
-  for this view, or None where the run has none (vanilla, image-level
-  evidence, test views, dense CLIP maps, which need the CLIP weights).
+  """float32 [H, W] in [0, 1]: the per-pixel transient map a training step
+  on this view would use with the run's final model (evaluation.view_map),
+  or None where the run has none: vanilla, image-level evidence, test
+  views, dense CLIP (it needs the CLIP weights), a residual map without
+  its statistics (a run with only its PLY), masks the scene lacks.
 
-  ORACLE-PIXEL and UNIFORM runs build theirs from the scene's masks, so
-  they are rebuilt here as guidance.make_scorer builds them.
+  The map's source is built for this one view as guidance.make_scorer
+  builds the run's (the residual test at the threshold the run ended with,
+  the feature regions of this photo alone); UNIFORM's constant is the mean
+  of every training mask, as guidance.uniform_control's.
   """
   sem = run.cfg.semantic
   masks = scene.train.masks
-  if (split != "train" or not sem.localized or masks is None
-      or sem.scorer not in ("oracle", "uniform")):
+  needs_masks = sem.scorer in ("oracle", "uniform", "oracle_patch")
+  if (split != "train" or not sem.localized or sem.scorer == "clip"
+      or (needs_masks and masks is None)
+      or (sem.uses_residual and run.maps is None)):
     return None
-  if sem.scorer == "uniform":      # guidance.uniform_control's constant
+  if sem.scorer == "uniform":
     return np.full(masks.shape[1:], np.mean(masks), np.float32)
-  return np.asarray(masks[index], np.float32)
+  one = dataclasses.replace(scene, train=_one_view(scene.train, index))
+  scorer = guidance.make_scorer(sem, one)
+  n = run.params.means.shape[0]
+  return evaluation.view_map(run.params, np.ones(n, bool), run.maps, scorer,
+                             one.train, 0, run.cfg,
+                             np.int32(run.degree)).astype(np.float32)
+
+
+def _one_view(vs, index: int):
+  """data.scene.Views of view `index` of `vs` alone."""
+  return dataclasses.replace(
+      vs, cameras=jax.tree.map(lambda x: x[index:index + 1], vs.cameras),
+      images=vs.images[index:index + 1], names=vs.names[index:index + 1],
+      masks=None if vs.masks is None else vs.masks[index:index + 1])

@@ -29,7 +29,7 @@ from clipgs_jax.lab import viewed_run
 # Panel images are at most this wide (pixels), so a click sends little.
 PANEL_WIDTH = 320
 # Frustum size as a fraction of the camera positions' spread (scene.extent).
-FRUSTUM_SCALE = 0.02
+FRUSTUM_SCALE = 0.01
 TRAIN_RGB, TEST_RGB, TRANSIENT_RGB = (60, 110, 255), (30, 170, 80), (255,
                                                                        140, 0)
 # A client's view looks at a point this far along the camera's axis, as a

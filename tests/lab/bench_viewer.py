@@ -5,7 +5,8 @@
 Writes DIR, a run folder with --gaussians random Gaussians (checkpoint.npz
 with guided statistics, point_cloud.ply, pruned.ply) and RUN's run.json and
 config.json (so its scene and cameras), then times experiments/view.py from
-its start to its ready line (three times) and counts the frames the
+its start to its ready line (three times; wall and the CPU time of the
+process, stopped at that line) and counts the frames the
 headless browser draws per second while it orbits. Prints one JSON line.
 Not a test: a measurement for BUILD_NOTES ("Viewer and logs").
 """
@@ -13,6 +14,7 @@ Not a test: a measurement for BUILD_NOTES ("Viewer and logs").
 import argparse
 import json
 import os
+import resource
 import shutil
 import subprocess
 import sys
@@ -26,8 +28,8 @@ from clipgs_jax import config as config_lib
 from clipgs_jax import gaussians
 from clipgs_jax import ply
 from clipgs_jax import run as run_lib
-from clipgs_jax import semantic
 from clipgs_jax import sh
+from clipgs_jax import state as state_lib
 from clipgs_jax import train
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(
@@ -62,7 +64,7 @@ def fake_run(like: str, out: str, num: int, seed: int = 0) -> None:
   p = params(num)
   state = train.init_state(cfg, p, np.ones(num, bool))
   weight = rng.uniform(0, 10, num).astype(np.float32)
-  state = state.replace(semantic=semantic.SemanticStats(
+  state = state.replace(semantic=state_lib.SemanticStats(
       acc=weight * rng.beta(0.5, 3, num).astype(np.float32), weight=weight,
       n=weight))
   checkpoint.save(os.path.join(out, train.CHECKPOINT_NAME), state, cfg)
@@ -99,12 +101,16 @@ def main():
   args = parser.parse_args()
   if not os.path.exists(os.path.join(args.out, train.CHECKPOINT_NAME)):
     fake_run(args.like, args.out, args.gaussians)
-  starts = []
+  starts, cpu = [], []
   for _ in range(3):
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     proc, seconds = start_viewer(args.out, args.port)
     starts.append(seconds)
-    proc.send_signal(2)
+    proc.send_signal(2)              # Ctrl-C at once: CPU to its ready line
     proc.wait(timeout=60)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu.append(after.ru_utime + after.ru_stime - before.ru_utime
+               - before.ru_stime)
   proc, _ = start_viewer(args.out, args.port)
   page = browser.Browser()
   try:
@@ -125,6 +131,7 @@ def main():
     proc.send_signal(2)
     proc.wait(timeout=60)
   print(json.dumps({"gaussians": args.gaussians, "start_seconds": starts,
+                    "start_cpu_seconds": cpu,
                     "page_ready_seconds": first,
                     "orbit_fps": fps, "viewport": size,
                     "load_average": os.getloadavg()}))

@@ -2,7 +2,6 @@
 Debian's chromedriver (selenium), screenshots as arrays, a frame counter."""
 
 import io
-import os
 import shutil
 import tempfile
 import time
@@ -10,8 +9,9 @@ import time
 import numpy as np
 from PIL import Image
 
-CHROMIUM = "/usr/bin/chromium"
-CHROMEDRIVER = "/usr/bin/chromedriver"
+# Debian's names; .ci/run installs both (packages chromium and
+# chromium-driver) when either is not on PATH.
+CHROMIUM, CHROMEDRIVER = "chromium", "chromedriver"
 # Small: swiftshader's time per frame grows with the pixels drawn.
 WINDOW = (640, 480)
 # Headless as root, with no network but localhost, on a machine without a
@@ -56,10 +56,10 @@ document.addEventListener('DOMContentLoaded', () => {
 
 def missing() -> str | None:
   """Why the browser cannot run here, or None."""
-  for path in (CHROMIUM, CHROMEDRIVER):
-    if not os.path.exists(path):
-      return (f"{path} is missing (apt-get install chromium "
-              "chromium-driver)")
+  for name in (CHROMIUM, CHROMEDRIVER):
+    if shutil.which(name) is None:
+      return (f"{name} is not on PATH (apt-get install chromium "
+              "chromium-driver; .ci/run does)")
   try:
     import selenium  # pylint: disable=g-import-not-at-top,unused-import
   except ImportError:
@@ -76,13 +76,14 @@ class Browser:
     from selenium.webdriver.chrome import service
     self.profile = tempfile.mkdtemp(prefix="chromium-profile-")
     options = webdriver.ChromeOptions()
-    options.binary_location = CHROMIUM
+    options.binary_location = shutil.which(CHROMIUM)
     for flag in FLAGS + (f"--user-data-dir={self.profile}",
                          f"--window-size={window[0]},{window[1]}"):
       options.add_argument(flag)
     # The driver's path is given, so selenium never looks for (or
     # downloads) one.
-    self.driver = webdriver.Chrome(service=service.Service(CHROMEDRIVER),
+    self.driver = webdriver.Chrome(service=service.Service(
+        shutil.which(CHROMEDRIVER)),
                                    options=options)
     self.driver.execute_cdp_cmd("Page.addScriptToEvaluateOnNewDocument",
                                 {"source": _PAGE_SETUP})

@@ -4,6 +4,7 @@ One guided smoke run (ORACLE-PIXEL on the embedded scene, so s_j, masks and
 pruned rows exist) is trained for the whole file by experiments/train.py.
 """
 
+import dataclasses
 import os
 import shutil
 import signal
@@ -18,7 +19,10 @@ import viser
 
 import browser
 from clipgs_jax import cli
+from clipgs_jax import evaluation
+from clipgs_jax import guidance
 from clipgs_jax import ply
+from clipgs_jax import residual
 from clipgs_jax import run as run_lib
 from clipgs_jax import summary
 from clipgs_jax.lab import viewed_run
@@ -40,6 +44,12 @@ MIN_SPLAT_FRACTION = 0.3
 # Colouring by s_j (viridis) changes most splat pixels; measured 0.9.
 MIN_TOGGLE_FRACTION = 0.2
 WAIT_S = 90.0                  # for the page to draw (swiftshader is slow)
+
+
+def _in_ci() -> bool:
+  """CI=1 (.ci/run sets it; most CI services set CI=true): a missing
+  browser fails the browser test instead of skipping it."""
+  return os.environ.get("CI", "").lower() not in ("", "0", "false")
 
 
 def _env():
@@ -109,9 +119,9 @@ def _wait_changed(page, before, region, fraction):
 def test_browser_shows_splats_and_s_j(guided_run, tmp_path):
   why = browser.missing()
   if why is not None:
-    if os.environ.get("CI"):
+    if _in_ci():
       pytest.fail(f"CI needs the browser: {why}")
-    pytest.skip(why)
+    pytest.skip(f"{why}; under CI=1 this fails")
   port = _free_port()
   stderr = open(tmp_path / "viewer.stderr", "w+")
   proc = subprocess.Popen(
@@ -210,11 +220,42 @@ def test_viewer_panel_in_process(guided_run):
     server.stop()
 
 
+def test_residual_transient_map(guided_run):
+  """A residual-map run shows the residual test of its final model's render
+  at the threshold it ended with, as its whole-scene scorer gives it."""
+  run = viewed_run.load(guided_run)
+  cfg = dataclasses.replace(run.cfg, semantic=dataclasses.replace(
+      run.cfg.semantic, scorer="residual"))
+  scene = viewed_run.load_scene(run)
+  index = 1
+  photo = scene.train.images[index]
+  res = np.asarray(residual.residual(
+      viewed_run.render(run, scene, "train", index), photo))
+  stats = residual.ResidualState.initial()
+  run = dataclasses.replace(run, cfg=cfg, maps=stats.replace(
+      threshold=np.float32(np.median(res))))
+  shown = viewed_run.transient_map(run, scene, "train", index)
+  expected = evaluation.view_map(
+      run.params, np.ones(len(run.params.means), bool), run.maps,
+      guidance.make_scorer(cfg.semantic, scene), scene.train, index, cfg,
+      np.int32(run.degree))
+  np.testing.assert_array_equal(shown, expected)
+  assert 0.05 < shown.mean() < 0.95, shown.mean()
+  everything = dataclasses.replace(run, maps=stats.replace(
+      threshold=np.float32(0.0)))      # no residual is under 0
+  assert viewed_run.transient_map(everything, scene, "train",
+                                  index).min() == 1.0
+  assert viewed_run.transient_map(run, scene, "test", 0) is None
+  no_stats = dataclasses.replace(run, maps=None)   # a PLY-only run
+  assert viewed_run.transient_map(no_stats, scene, "train", index) is None
+
+
 def test_run_folder_keeps_what_the_viewer_needs(guided_run):
   pruned = viewed_run.load(guided_run).pruned
   events = {r["tag"] for r in summary.read(
       os.path.join(guided_run, run_lib.TENSORBOARD_DIR))}
-  assert {"train/loss", "test/psnr", "semantic/s_j", "train_view/render",
+  assert {"train/loss", "test/psnr", "mask/precision", "mask/recall",
+          "semantic/s_j", "train_view/render",
           "train_view/transient_map"} <= events
   assert len(pruned.centers) > 0
 
