@@ -1,8 +1,9 @@
 """Headless Chromium for the viewer's tests: Debian's chromium through
 Debian's chromedriver (selenium), screenshots as arrays, a frame counter."""
 
-import ctypes
 import io
+import os
+import shlex
 import shutil
 import tempfile
 import time
@@ -55,17 +56,26 @@ document.addEventListener('DOMContentLoaded', () => {
 """
 
 
-# Chromium run as root raises its browser and GPU processes to nice -8
-# (CAP_SYS_NICE), ahead of every other job on a shared box. Dropped from
-# the driver's capability bounding set, the capability is gone for the
-# browser it starts, which then keeps the test's nice value.
-_PR_CAPBSET_DROP, _CAP_SYS_NICE = 24, 23       # linux/prctl.h, capability.h
+def _driver_command(folder: str) -> str:
+  """The driver binary selenium starts.
 
-
-def _without_sys_nice() -> None:
-  """Runs in the driver's process before its exec; as a non-root user the
-  drop fails, and there is no capability to drop."""
-  ctypes.CDLL(None).prctl(_PR_CAPBSET_DROP, _CAP_SYS_NICE, 0, 0, 0)
+  As root, chromedriver starts Chromium at nice 0 and Chromium raises its
+  browser and GPU processes to -8 (CAP_SYS_NICE), ahead of every other job
+  on a shared box, whatever nice the test runs at. So as root the driver
+  is started through a script that drops that capability from its
+  bounding set (util-linux setpriv), which the browser inherits: both keep
+  the test's nice value. A user without root has no such capability.
+  """
+  driver = shutil.which(CHROMEDRIVER)
+  setpriv = shutil.which("setpriv")
+  if os.geteuid() != 0 or setpriv is None:
+    return driver
+  script = os.path.join(folder, "chromedriver")
+  with open(script, "w") as f:
+    f.write(f"#!/bin/sh\nexec {shlex.quote(setpriv)} --bounding-set "
+            f"-sys_nice {shlex.quote(driver)} \"$@\"\n")
+  os.chmod(script, 0o755)
+  return script
 
 
 def missing() -> str | None:
@@ -82,23 +92,24 @@ def missing() -> str | None:
 
 
 class Browser:
-  """One headless Chromium with a fresh profile; close() removes it."""
+  """One headless Chromium with a fresh profile in a temporary folder;
+  close() removes the folder."""
 
   def __init__(self, window: tuple[int, int] = WINDOW):
     # pylint: disable=g-import-not-at-top
     from selenium import webdriver
     from selenium.webdriver.chrome import service
-    self.profile = tempfile.mkdtemp(prefix="chromium-profile-")
+    self.folder = tempfile.mkdtemp(prefix="chromium-")
+    profile = os.path.join(self.folder, "profile")
     options = webdriver.ChromeOptions()
     options.binary_location = shutil.which(CHROMIUM)
-    for flag in FLAGS + (f"--user-data-dir={self.profile}",
+    for flag in FLAGS + (f"--user-data-dir={profile}",
                          f"--window-size={window[0]},{window[1]}"):
       options.add_argument(flag)
     # The driver's path is given, so selenium never looks for (or
     # downloads) one.
     self.driver = webdriver.Chrome(service=service.Service(
-        shutil.which(CHROMEDRIVER),
-        popen_kw={"preexec_fn": _without_sys_nice}),
+        _driver_command(self.folder)),
                                    options=options)
     self.driver.execute_cdp_cmd("Page.addScriptToEvaluateOnNewDocument",
                                 {"source": _PAGE_SETUP})
@@ -188,4 +199,4 @@ class Browser:
     try:
       self.driver.quit()
     finally:
-      shutil.rmtree(self.profile, ignore_errors=True)
+      shutil.rmtree(self.folder, ignore_errors=True)
