@@ -3,8 +3,10 @@
 Layout: every leaf of the state under "state/<path>" (e.g.
 "state/params/means", "state/opt_state/inner_states/means/inner_state/0/mu/
 means"); the PRNG key as its raw key data; "meta/config" (the resolved
-config as JSON), "meta/extra" (JSON: the loop's curve and timers) and
-"meta/version". No pickles: the file loads with allow_pickle=False.
+config as JSON), "meta/extra" (JSON: the loop's curve and timers),
+"meta/version", and host records that are arrays under "arrays/<name>" (the
+rows semantic prunes removed). No pickles: the file loads with
+allow_pickle=False.
 """
 
 import json
@@ -23,7 +25,8 @@ from clipgs_jax import state as state_lib
 
 # 2: SemanticStats gained `weight` (contribution-weighted s_j normaliser).
 VERSION = 2
-_PREFIX = "state/"
+STATE_PREFIX = "state/"
+ARRAYS_PREFIX = "arrays/"
 
 
 # What np.load and NpzFile raise on a file that is not a whole .npz.
@@ -54,13 +57,16 @@ def flatten(tree) -> dict[str, Any]:
 
 
 def save(path: str, state: state_lib.TrainState, cfg: config_lib.Config,
-         extra: dict | None = None) -> None:
-  """Writes `state`, the config and `extra` to `path`."""
-  arrays = {}
+         extra: dict | None = None,
+         records: dict[str, np.ndarray] | None = None) -> None:
+  """Writes `state`, the config, `extra` (JSON) and `records` (arrays,
+  under ARRAYS_PREFIX + name) to `path`."""
+  arrays = {ARRAYS_PREFIX + k: np.asarray(v)
+            for k, v in (records or {}).items()}
   for name, leaf in flatten(jax.device_get(state)).items():
     if _is_prng_key(leaf):
       leaf = jax.random.key_data(leaf)
-    arrays[_PREFIX + name] = np.asarray(leaf)
+    arrays[STATE_PREFIX + name] = np.asarray(leaf)
   arrays["meta/config"] = np.asarray(json.dumps(config_lib.to_dict(cfg)))
   arrays["meta/extra"] = np.asarray(json.dumps(extra or {}))
   arrays["meta/version"] = np.asarray(VERSION, np.int32)
@@ -97,6 +103,14 @@ def _read(path: str, fn):
     raise
   except _READ_ERRORS as e:
     raise _unreadable(path, e) from e
+
+
+def read_arrays(path: str, *prefixes: str) -> dict[str, np.ndarray]:
+  """{name: array} of the entries whose names start with one of
+  `prefixes`, e.g. STATE_PREFIX + "params/" (the Gaussians) or
+  ARRAYS_PREFIX; loads only those entries and needs no template."""
+  return _read(path, lambda data: {k: data[k] for k in data.files
+                                   if k.startswith(prefixes)})
 
 
 def read_meta(path: str) -> dict[str, Any]:
@@ -166,17 +180,17 @@ def _restore(data, path, template):
     raise CheckpointError(f"checkpoint: {path} has format version "
                           f"{meta['version']}, this code reads {VERSION}; "
                           "start over in a new workdir.")
-  capacity = data[_PREFIX + "alive"].shape[0]
+  capacity = data[STATE_PREFIX + "alive"].shape[0]
   if template.alive.shape[0] != capacity:
     template = state_lib.resize(template, capacity)
   names = flatten(template)
-  missing = [n for n in names if _PREFIX + n not in data]
+  missing = [n for n in names if STATE_PREFIX + n not in data]
   if missing:
     raise CheckpointError(f"checkpoint: {path} lacks {missing[:3]}; it was "
                           "written for a different config or code version.")
   leaves = []
   for name, like in names.items():
-    value = data[_PREFIX + name]
+    value = data[STATE_PREFIX + name]
     if _is_prng_key(like):
       expected = jax.random.key_data(like)
       if value.shape != expected.shape or value.dtype != expected.dtype:

@@ -202,6 +202,17 @@ def _view_map_fn(cfg: config_lib.Config):
   return jax.jit(fn)
 
 
+def view_map(params: gaussians.GaussianParams, alive, stats, scorer, views,
+             index: int, cfg: config_lib.Config, degree) -> np.ndarray:
+  """float32 [H, W] in [0, 1], the transient map m a training step on view
+  `index` of `views` would use now (mask_quality's arguments)."""
+  cams = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), views.cameras)
+  return np.asarray(_view_map_fn(config_lib.compiled_part(cfg))(
+      params, alive, stats, scorer, jnp.int32(index),
+      camera_lib.camera_at(cams, index),
+      jnp.asarray(views.images[index], jnp.float32), degree))
+
+
 def mask_quality(params: gaussians.GaussianParams, alive, stats, scorer,
                  views, cfg: config_lib.Config, degree) -> dict | None:
   """How well the transient maps the loss uses match the ground truth.
@@ -226,14 +237,10 @@ def mask_quality(params: gaussians.GaussianParams, alive, stats, scorer,
   """
   if views.masks is None:
     return None
-  fn = _view_map_fn(config_lib.compiled_part(cfg))
-  cams = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), views.cameras)
   totals = np.zeros(3, np.int64)
   per_view = {}
   for i, name in enumerate(views.names):
-    m = np.asarray(fn(params, alive, stats, scorer, jnp.int32(i),
-                      camera_lib.camera_at(cams, i),
-                      jnp.asarray(views.images[i], jnp.float32), degree))
+    m = view_map(params, alive, stats, scorer, views, i, cfg, degree)
     counts = _confusion(scene_lib.crop(views, i, m) > MAP_THRESHOLD,
                         scene_lib.crop(views, i, np.asarray(views.masks[i],
                                                             bool)))

@@ -328,6 +328,18 @@ def prune_due(step: int, cfg: config_lib.Config) -> bool:
           and since >= 0 and since % sem.prune_every == 0 and not quiet)
 
 
+def prune_thresholds(sem: config_lib.SemanticConfig,
+                     tau: float | None = None) -> dict[str, float]:
+  """semantic.prune_masks' thresholds for `sem`: tau_p (pixel evidence)
+  or tau, or `tau` when given (a preview of another threshold)."""
+  if tau is None:
+    tau = sem.tau_p if sem.localized else sem.tau
+  return {"tau": tau, "n_min": sem.n_min / sem.score_every,
+          "alpha_min": sem.alpha_min,
+          "min_weight": semantic.MIN_EVIDENCE_WEIGHT if sem.localized
+                        else 0.0}
+
+
 def prune(state: state_lib.TrainState, *, cfg: config_lib.Config
           ) -> tuple[state_lib.TrainState, dict[str, jax.Array]]:
   """Eq. 13: removes alive rows with s_j > tau, or n_j < n_min and
@@ -352,9 +364,7 @@ def prune(state: state_lib.TrainState, *, cfg: config_lib.Config
   sem = cfg.semantic
   by_score, by_visibility = semantic.prune_masks(
       state.semantic, state.params.opacity_logits, state.alive,
-      tau=sem.tau_p if sem.localized else sem.tau,
-      n_min=sem.n_min / sem.score_every, alpha_min=sem.alpha_min,
-      min_weight=semantic.MIN_EVIDENCE_WEIGHT if sem.localized else 0.0)
+      **prune_thresholds(sem))
   wanted = jnp.sum(by_score | by_visibility, dtype=jnp.int32)
   by_score, by_visibility, guarded = semantic.guard_prune(
       by_score, by_visibility, state.alive, sem.max_prune_fraction)

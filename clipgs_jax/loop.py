@@ -25,9 +25,10 @@ from clipgs_jax import config as config_lib
 from clipgs_jax import densify as densify_lib
 from clipgs_jax import evaluation
 from clipgs_jax import guidance
+from clipgs_jax import semantic
 from clipgs_jax import sharding
-from clipgs_jax import state as state_lib
 from clipgs_jax import sh
+from clipgs_jax import state as state_lib
 
 _log = logging.getLogger(__name__)
 
@@ -79,6 +80,7 @@ class Context:
     densify_key: the key densify folds each step into.
     scorer: the run's guidance scorer, or None.
     bar: a tqdm progress bar, or None.
+    summary: a summary.Writer (TensorBoard), or None.
   """
   cfg: config_lib.Config
   scene: Any
@@ -87,10 +89,16 @@ class Context:
   densify_key: jax.Array
   scorer: Any = None
   bar: Any = None
+  summary: Any = None
 
   @property
   def per_step_keys(self) -> tuple[str, ...]:
     return guidance.per_step_keys(self.cfg.semantic)
+
+
+# The checkpoint record of the rows semantic prunes removed (one array per
+# GaussianParams field), so a resumed run still has them.
+_PRUNED_RECORD = "pruned/"
 
 
 def restore(state: state_lib.TrainState, ckpt_path: str,
@@ -103,10 +111,14 @@ def restore(state: state_lib.TrainState, ckpt_path: str,
     checkpoint.check_resumable(ckpt_path, cfg)
     state, meta = checkpoint.restore(ckpt_path, state)
     extra = meta["extra"]
+    prefix = checkpoint.ARRAYS_PREFIX + _PRUNED_RECORD
+    pruned = {k[len(prefix):]: v for k, v in
+              checkpoint.read_arrays(ckpt_path, prefix).items()}
     flog = FitLog(curve=list(extra.get("curve", [])),
                   train_seconds=float(extra.get("train_seconds", 0.0)),
                   scores=list(extra.get("scores", [])),
-                  prune_events=list(extra.get("prune_events", [])))
+                  prune_events=list(extra.get("prune_events", [])),
+                  pruned=[type(state.params)(**pruned)] if pruned else [])
     _log.info("resumed from %s at step %d", ckpt_path, int(state.step))
   elif resume:
     _log.info("no checkpoint at %s; starting from step 0", ckpt_path)
@@ -182,8 +194,48 @@ def eval_point(state: state_lib.TrainState, flog: FitLog, step: int,
               "recall %s, IoU %s", step, *(
                   "n/a" if quality[k] is None else f"{quality[k]:.3f}"
                   for k in ("precision", "recall", "iou")))
+  if ctx.summary is not None:
+    ctx.summary.scalars(step, {"test/psnr": result["mean/psnr"]} | {
+        f"mask/{k}": point[f"mask_{k}"] for k in ("precision", "recall",
+                                                  "iou")
+        if point.get(f"mask_{k}") is not None})
+    summarize_view(sharding.local(state), step, ctx)
   return dataclasses.replace(flog, curve=flog.curve + [point],
                              mask_quality=quality)
+
+
+def _degree(state: state_lib.TrainState, ctx: Context) -> jax.Array:
+  """int32 [], the SH degree the train steps use now."""
+  return sh.active_degree(state.step, ctx.cfg.densify.sh_degree_every,
+                          ctx.cfg.gaussians.sh_degree)
+
+
+def summary_view(scene) -> int:
+  """The training view TensorBoard shows: the one with the most transient
+  pixels where the scene has masks, else the first."""
+  masks = scene.train.masks
+  return 0 if masks is None else int(np.argmax(np.mean(masks, axis=(1, 2))))
+
+
+def summarize_view(state: state_lib.TrainState, step: int,
+                   ctx: Context) -> None:
+  """TensorBoard images of `summary_view`: our render, the photo, and the
+  transient map the loss would use now and the ground-truth mask where
+  they exist."""
+  i, train = summary_view(ctx.scene), ctx.scene.train
+  one = dataclasses.replace(
+      train, cameras=jax.tree.map(lambda x: x[i:i + 1], train.cameras),
+      images=train.images[i:i + 1], names=train.names[i:i + 1], masks=None)
+  image = next(evaluation.renders(state.params, state.alive, one,
+                                  ctx.cfg))[0]
+  ctx.summary.image(step, "train_view/render", image)
+  ctx.summary.image(step, "train_view/photo", train.images[i])
+  if ctx.cfg.semantic.localized and ctx.scorer is not None:
+    ctx.summary.image(step, "train_view/transient_map", evaluation.view_map(
+        state.params, state.alive, state.maps, ctx.scorer, train, i,
+        ctx.cfg, _degree(state, ctx)))
+  if train.masks is not None:
+    ctx.summary.image(step, "train_view/ground_truth_mask", train.masks[i])
 
 
 def evaluate(state: state_lib.TrainState, flog: FitLog, step: int,
@@ -232,12 +284,21 @@ def semantic_prune(state: state_lib.TrainState, flog: FitLog, step: int,
   gathered after it, on the device, and only they are fetched.
   """
   cfg = ctx.cfg
+  if ctx.summary is not None:       # s_j before the prune donates `state`
+    scores = np.asarray(semantic.normalized_scores(state.semantic))
+    ctx.summary.histogram(step, "semantic/s_j",
+                          scores[np.asarray(state.alive)],
+                          bins=guidance.histogram_edges(cfg.semantic))
   state, info = guidance.make_prune(cfg)(state)
   info = jax.device_get(info)
   rows = np.nonzero(info.pop("pruned_semantic"))[0]
   pruned = jax.device_get(jax.tree.map(lambda x: x[rows], state.params))
   event = {"step": step} | {k: np.asarray(v).tolist()
                             for k, v in info.items()}
+  if ctx.summary is not None:
+    ctx.summary.scalars(step, {f"prune/{k}": float(v)
+                               for k, v in event.items()
+                               if k != "step" and np.ndim(v) == 0})
   if event["guarded"]:
     _log.warning(
         "step %d: semantic prune REFUSED: it would remove %d of %d "
@@ -283,6 +344,9 @@ def densify(state: state_lib.TrainState, flog: FitLog, step: int,
     state = grow_if_needed(state, ctx.cfg)
     state, info = densify_lib.make_densify(ctx.cfg)(
         state, jax.random.fold_in(ctx.densify_key, step))
+    if ctx.summary is not None:
+      ctx.summary.scalars(step, {f"densify/{k}": v for k, v in
+                                 jax.device_get(info).items()})
     flog = dataclasses.replace(flog, last_info=info)
   if do_reset:
     state = densify_lib.make_reset_opacity(ctx.cfg)(state)
@@ -310,6 +374,9 @@ def log(flog: FitLog, step: int, ctx: Context) -> FitLog:
     values.update({k: float(v) for k, v in
                    jax.device_get(flog.last_info).items()})
   check_finite(step, values)
+  if ctx.summary is not None:     # densify counts: at their own step
+    ctx.summary.scalars(step, {f"train/{k}": v for k, v in values.items()
+                               if k not in (flog.last_info or {})})
   if values.get("num_overflow", 0) > 0:
     # Inexact render: the view's tile/Gaussian intersections did not fit
     # the buffer of tiles x tile_budget pairs.
@@ -332,10 +399,14 @@ def save(state: state_lib.TrainState, flog: FitLog, ctx: Context
   """Writes the checkpoint with the run's record (scores fetched first);
   in a multi-host run only the process that writes the run folder."""
   flog = flush_scores(flog, ctx)
+  pruned = concatenated(flog.pruned)
   if sharding.is_writer():
     checkpoint.save(ctx.ckpt_path, state, ctx.cfg, extra={
         "curve": flog.curve, "train_seconds": flog.train_seconds,
-        "scores": flog.scores, "prune_events": flog.prune_events})
+        "scores": flog.scores, "prune_events": flog.prune_events},
+        records=None if pruned is None else {
+            _PRUNED_RECORD + k: v
+            for k, v in checkpoint.flatten(pruned).items()})
   return flog
 
 
@@ -364,8 +435,8 @@ class FitResult:
       num_pruned_semantic, num_pruned_visibility, num_refused, guarded,
       histogram} per prune.
     pruned: semantic guidance only: numpy GaussianParams of the rows the
-      semantic rule removed, as they were when removed (None if none were;
-      rows removed before a resume are not kept).
+      semantic rule removed, as they were when removed (None if none were),
+      those removed before a resume included (the checkpoint keeps them).
     mask_quality: pixel evidence on a scene with masks: the last
       evaluation.mask_quality, else None.
   """
@@ -380,12 +451,17 @@ class FitResult:
   mask_quality: dict[str, Any] | None = None
 
 
+def concatenated(pruned: list[Any]):
+  """One numpy GaussianParams of FitLog.pruned's rows, or None."""
+  return (jax.tree.map(lambda *x: np.concatenate(x), *pruned)
+          if pruned else None)
+
+
 def result(state: state_lib.TrainState, cfg: config_lib.Config,
            flog: FitLog) -> FitResult:
   """The FitResult of a finished loop; the pruned rows concatenated."""
-  pruned = (jax.tree.map(lambda *x: np.concatenate(x), *flog.pruned)
-            if flog.pruned else None)
   return FitResult(state=state, cfg=cfg, curve=flog.curve,
                    train_seconds=flog.train_seconds, log=flog.log,
                    scores=flog.scores, prune_events=flog.prune_events,
-                   pruned=pruned, mask_quality=flog.mask_quality)
+                   pruned=concatenated(flog.pruned),
+                   mask_quality=flog.mask_quality)

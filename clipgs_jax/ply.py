@@ -1,22 +1,19 @@
-"""Gaussians to and from the 3DGS PLY layout (binary little-endian)."""
+"""Gaussians to and from the 3DGS PLY layout, through plyfile."""
 
 import os
 import re
-import uuid
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import plyfile
 
+from clipgs_jax import fileio
 from clipgs_jax import gaussians
 
-# PLY scalar types and their numpy equivalents (both spellings of the spec).
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "<i2", "int16": "<i2", "ushort": "<u2", "uint16": "<u2",
-    "int": "<i4", "int32": "<i4", "uint": "<u4", "uint32": "<u4",
-    "float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8",
-}
+# PLY format line -> (plyfile text flag, byte order).
+FORMATS = {"binary_little_endian": (False, "<"),
+           "binary_big_endian": (False, ">"), "ascii": (True, "=")}
 
 
 def _field_names(num_rest: int) -> list[str]:
@@ -27,7 +24,8 @@ def _field_names(num_rest: int) -> list[str]:
            "rot_0", "rot_1", "rot_2", "rot_3"])
 
 
-def write_ply(path: str, params: gaussians.GaussianParams, alive) -> None:
+def write_ply(path: str, params: gaussians.GaussianParams, alive,
+              fmt: str = "binary_little_endian") -> None:
   """Writes the alive Gaussians as a 3DGS-compatible PLY, atomically.
 
   Values are stored unconstrained, as 3DGS does: opacity as a logit, scales
@@ -38,7 +36,11 @@ def write_ply(path: str, params: gaussians.GaussianParams, alive) -> None:
     path: str, output file.
     params: GaussianParams with capacity C.
     alive: bool [C], which slots to write.
+    fmt: a key of FORMATS; 3DGS writes binary_little_endian.
   """
+  if fmt not in FORMATS:
+    raise ValueError(f"write_ply: fmt={fmt!r} is not one of "
+                     f"{', '.join(FORMATS)}.")
   gaussians.validate(params, jnp.asarray(alive))
   alive = np.asarray(alive)
   get = lambda x: np.asarray(x, np.float32)[alive]
@@ -50,62 +52,13 @@ def write_ply(path: str, params: gaussians.GaussianParams, alive) -> None:
       rest.transpose(0, 2, 1).reshape(n, 3 * k),            # [N, 3 K]
       get(params.opacity_logits)[:, None], get(params.log_scales),
       get(params.quats)], axis=1)
-  records = np.empty(n, np.dtype([(name, "<f4") for name in names]))
+  text, order = FORMATS[fmt]
+  records = np.empty(n, np.dtype([(name, order + "f4") for name in names]))
   for i, name in enumerate(names):
     records[name] = columns[:, i]
-  header = ("ply\nformat binary_little_endian 1.0\n"
-            f"element vertex {n}\n" +
-            "".join(f"property float {name}\n" for name in names) +
-            "end_header\n")
-  folder = os.path.dirname(os.path.abspath(path))
-  os.makedirs(folder, exist_ok=True)
-  tmp = os.path.join(folder, f".{os.path.basename(path)}."
-                     f"{os.getpid()}-{uuid.uuid4().hex}.tmp")
-  try:
-    with open(tmp, "wb") as f:
-      f.write(header.encode("ascii"))
-      f.write(records.tobytes())
-    os.replace(tmp, path)
-  finally:
-    if os.path.exists(tmp):
-      os.remove(tmp)
-
-
-def _read_header(f, path: str) -> tuple[int, np.dtype]:
-  """(vertex count, vertex record dtype) from a binary PLY header."""
-  if f.readline().strip() != b"ply":
-    raise ValueError(f"{path} is not a PLY file (no 'ply' magic line).")
-  count, fields, in_vertex = None, [], False
-  while True:
-    line = f.readline()
-    if not line:
-      raise ValueError(f"{path}: PLY header has no end_header line.")
-    words = line.decode("ascii", "replace").split()
-    if not words or words[0] in ("comment", "obj_info"):
-      continue
-    if words[0] == "end_header":
-      break
-    if words[0] == "format" and words[1:2] != ["binary_little_endian"]:
-      raise ValueError(f"{path}: PLY format {' '.join(words[1:])} is not "
-                       "supported; write it as binary_little_endian.")
-    if words[0] == "element":
-      if count is not None and in_vertex:
-        raise ValueError(f"{path}: only a single 'vertex' element is "
-                         "supported.")
-      in_vertex = words[1] == "vertex"
-      if in_vertex:
-        count = int(words[2])
-      elif count is None:
-        raise ValueError(f"{path}: element {words[1]} before 'vertex' is "
-                         "not supported.")
-    elif words[0] == "property" and in_vertex:
-      if words[1] == "list" or words[1] not in _PLY_TYPES:
-        raise ValueError(f"{path}: unsupported vertex property "
-                         f"{' '.join(words[1:])}.")
-      fields.append((words[2], _PLY_TYPES[words[1]]))
-  if count is None:
-    raise ValueError(f"{path}: PLY file has no vertex element.")
-  return count, np.dtype(fields)
+  data = plyfile.PlyData([plyfile.PlyElement.describe(records, "vertex")],
+                         text=text, byte_order=order)
+  fileio.atomic_write(path, data.write, ".ply")
 
 
 def _check_finite(records: np.ndarray, path: str) -> None:
@@ -134,9 +87,34 @@ def _check_finite(records: np.ndarray, path: str) -> None:
         "those rows.")
 
 
+def _vertex_records(path: str) -> np.ndarray:
+  """The vertex element's structured array; PLY errors name the file."""
+  if not os.path.isfile(path):
+    raise FileNotFoundError(f"PLY file not found: {path}")
+  try:
+    data = plyfile.PlyData.read(path)
+  except plyfile.PlyHeaderParseError as e:
+    raise ValueError(f"{path} is not a readable PLY file ({e}).") from e
+  except plyfile.PlyElementParseError as e:
+    raise ValueError(f"{path}: truncated or malformed vertex data ({e})."
+                     ) from e
+  if "vertex" not in data:
+    raise ValueError(f"{path}: PLY file has no vertex element.")
+  vertex = data["vertex"]
+  lists = [p.name for p in vertex.properties
+           if isinstance(p, plyfile.PlyListProperty)]
+  if lists:
+    raise ValueError(f"{path}: unsupported vertex list properties {lists}; "
+                     "3DGS vertex properties are scalars.")
+  return vertex.data
+
+
 def read_ply(path: str, capacity: int | None = None
              ) -> tuple[gaussians.GaussianParams, jax.Array]:
   """Reads a 3DGS PLY (as written by `write_ply` or by 3DGS itself).
+
+  Any property order, extra properties and elements, and any PLY format
+  (binary little- or big-endian, ASCII) are read.
 
   Args:
     path: str, input file.
@@ -146,25 +124,20 @@ def read_ply(path: str, capacity: int | None = None
   Returns:
     (GaussianParams of float32 jax arrays with capacity C, alive bool [C]).
   """
-  if not os.path.isfile(path):
-    raise FileNotFoundError(f"PLY file not found: {path}")
-  with open(path, "rb") as f:
-    count, dtype = _read_header(f, path)
-    data = f.read(count * dtype.itemsize)
-  if len(data) < count * dtype.itemsize:
-    raise ValueError(f"{path}: truncated, {len(data)} bytes of vertex data "
-                     f"for {count} vertices of {dtype.itemsize} bytes.")
-  records = np.frombuffer(data, dtype, count)
-  _check_finite(records, path)
-  names = set(dtype.names)
-  rest_ids = sorted(int(m.group(1)) for name in names
-                    if (m := re.fullmatch(r"f_rest_(\d+)", name)))
-  k3 = len(rest_ids)
+  records = _vertex_records(path)
+  count = len(records)
+  names = set(records.dtype.names or ())
   required = set(_field_names(0)) - {"nx", "ny", "nz"}
   missing = sorted(required - names)
   if missing:
     raise ValueError(f"{path} is not a 3DGS PLY: vertex properties "
-                     f"{missing} are missing.")
+                     f"{missing} are missing (3DGS writes x, y, z, f_dc_*, "
+                     "opacity, scale_*, rot_* as binary_little_endian "
+                     "floats).")
+  _check_finite(records, path)
+  rest_ids = sorted(int(m.group(1)) for name in names
+                    if (m := re.fullmatch(r"f_rest_(\d+)", name)))
+  k3 = len(rest_ids)
   if rest_ids != list(range(k3)) or k3 // 3 not in (0, 3, 8, 15) or k3 % 3:
     raise ValueError(f"{path}: expected f_rest_0 .. f_rest_{{3K-1}} with "
                      f"K in (0, 3, 8, 15) (SH degree 0-3), got {k3} f_rest "

@@ -24,6 +24,7 @@ from clipgs_jax import cli
 from clipgs_jax import config as config_lib
 from clipgs_jax import evaluation
 from clipgs_jax import fileio
+from clipgs_jax import gaussians
 from clipgs_jax import guidance
 from clipgs_jax import loop
 from clipgs_jax import plots
@@ -42,6 +43,9 @@ CURVE_PNG = "curve.png"          # test error against training time
 SCORES_JSONL = "scores.jsonl"    # guided runs: one line per scored step
 PRUNE_EVENTS_JSON = "prune_events.json"  # guided runs: every prune event
 POINT_CLOUD_PLY = "point_cloud.ply"  # the alive Gaussians (3DGS layout)
+PRUNED_PLY = "pruned.ply"        # guided runs: the rows semantic prunes
+#   removed, as they were when removed (3DGS layout; none: 0 vertices)
+TENSORBOARD_DIR = "tensorboard"  # TensorBoard event files (summary.py)
 TEST_RENDERS = os.path.join("renders", "test")   # one PNG per test view
 
 
@@ -159,7 +163,8 @@ def semantic_label(sem: config_lib.SemanticConfig) -> str:
 
 def _write_semantic_logs(workdir: str, cfg: config_lib.Config,
                          result: loop.FitResult, scene) -> dict:
-  """scores.jsonl and prune_events.json; returns metrics.json's block."""
+  """scores.jsonl, prune_events.json and pruned.ply; returns
+  metrics.json's block."""
   def write_lines(tmp):
     with open(tmp, "w") as f:
       for row in result.scores:
@@ -171,6 +176,11 @@ def _write_semantic_logs(workdir: str, cfg: config_lib.Config,
       "histogram_edges": guidance.histogram_edges(cfg.semantic),
       "events": result.prune_events})
   state = result.state
+  pruned = result.pruned
+  if pruned is None:
+    pruned = gaussians.empty(0, state.params.sh_degree)[0]
+  ply.write_ply(os.path.join(workdir, PRUNED_PLY), pruned,
+                np.ones(pruned.means.shape[0], bool))
   block = guidance.summarize(result.prune_events,
                              int(jax.device_get(state.alive.sum())),
                              state.semantic)
@@ -281,7 +291,8 @@ def _train_into(cfg: config_lib.Config, scene, workdir: str, *, scorer,
   fileio.write_json(os.path.join(workdir, CONFIG_JSON),
                     config_lib.to_dict(cfg))
   result = train.fit(cfg, scene, workdir, scorer=scorer, resume=resume,
-                     progress=progress)
+                     progress=progress,
+                     summary_dir=os.path.join(workdir, TENSORBOARD_DIR))
   state = sharding.local(result.state)
   test = test_metrics(state.params, state.alive, scene.test, cfg, lpips_net,
                       renders_dir=os.path.join(workdir, TEST_RENDERS))

@@ -31,6 +31,7 @@ from clipgs_jax import semantic as semantic_lib
 from clipgs_jax import sh
 from clipgs_jax import sharding
 from clipgs_jax import state as state_lib
+from clipgs_jax import summary
 from clipgs_jax import view as view_lib
 from clipgs_jax.data import scene as scene_lib
 
@@ -266,7 +267,8 @@ def _stepper(cfg: config_lib.Config, scene, state: state_lib.TrainState,
 
 def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
         resume: bool = False, progress: bool = True,
-        stop_after: int | None = None, devices=None) -> loop.FitResult:
+        stop_after: int | None = None, devices=None,
+        summary_dir: str | None = None) -> loop.FitResult:
   """Trains on scene.train, tracking test PSNR on scene.test.
 
   Each step runs the jitted train step (train_step; batch_step when
@@ -295,6 +297,8 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
       a preemption would (a later resume=True call finishes the run).
     devices: the devices a batch of views spreads over
       (sharding.make_mesh); default every device.
+    summary_dir: TensorBoard event files go here (summary.Writer), or
+      nowhere when None.
   """
   guidance.check_scorer(cfg.semantic, scorer, "train.fit")
   os.makedirs(workdir, exist_ok=True)
@@ -310,14 +314,17 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
       end=total if stop_after is None else min(total, stop_after),
       densify_key=jax.random.fold_in(state.key, _DENSIFY_STREAM),
       scorer=scorer)
-  if start == 0 and cfg.train.eval_every and loop.eval_due(0, ctx):
-    flog = loop.eval_point(state, flog, 0, ctx)
-  if progress:
-    import tqdm  # pylint: disable=g-import-not-at-top
-    ctx = dataclasses.replace(ctx, bar=tqdm.tqdm(
-        total=total, initial=start, dynamic_ncols=True, mininterval=1.0))
-  flog = loop.start_clock(flog)
+  if summary_dir is not None and sharding.is_writer():
+    ctx = dataclasses.replace(ctx, summary=summary.Writer(summary_dir,
+                                                          start_step=start))
   try:
+    if start == 0 and cfg.train.eval_every and loop.eval_due(0, ctx):
+      flog = loop.eval_point(state, flog, 0, ctx)
+    if progress:
+      import tqdm  # pylint: disable=g-import-not-at-top
+      ctx = dataclasses.replace(ctx, bar=tqdm.tqdm(
+          total=total, initial=start, dynamic_ncols=True, mininterval=1.0))
+    flog = loop.start_clock(flog)
     for step in range(start + 1, ctx.end + 1):   # `step` = steps done after
       state, metrics = step_fn(state, data, step_scorer)
       flog = loop.record_step(flog, step, metrics, ctx)
@@ -339,6 +346,8 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
   finally:
     if ctx.bar is not None:
       ctx.bar.close()
+    if ctx.summary is not None:
+      ctx.summary.close()
   jax.block_until_ready(state)
   if start >= total:
     _log.info("checkpoint is already at step %d >= %d steps", start, total)

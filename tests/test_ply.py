@@ -4,6 +4,7 @@ import os
 
 import jax.numpy as jnp
 import numpy as np
+import plyfile
 import pytest
 
 from clipgs_jax import gaussians
@@ -135,3 +136,39 @@ def test_write_validates(tmp_path):
   params = _random_params(3, 3)
   with pytest.raises(ValueError, match="alive"):
     ply.write_ply(str(tmp_path / "g.ply"), params, jnp.ones(4, bool))
+
+
+@pytest.mark.parametrize("fmt", sorted(ply.FORMATS))
+@pytest.mark.parametrize("k", [0, 8])
+def test_round_trip_in_every_format(tmp_path, fmt, k):
+  params = _random_params(6, k, seed=1)
+  path = str(tmp_path / "g.ply")
+  ply.write_ply(path, params, jnp.ones(6, bool), fmt=fmt)
+  lines, _ = _header(path)
+  assert lines[1] == f"format {fmt} 1.0"
+  back, alive = ply.read_ply(path)
+  assert bool(alive.all()) and back.sh_degree == (2 if k else 0)
+  for field in ("means", "log_scales", "quats", "opacity_logits", "sh_dc",
+                "sh_rest"):
+    np.testing.assert_array_equal(np.asarray(getattr(back, field)),
+                                  np.asarray(getattr(params, field)))
+
+
+def test_reads_a_plyfile_file_in_another_property_order(tmp_path):
+  params = _random_params(5, 3, seed=2)
+  path = str(tmp_path / "g.ply")
+  ply.write_ply(path, params, jnp.ones(5, bool))
+  records = plyfile.PlyData.read(path)["vertex"].data
+  rng = np.random.default_rng(3)
+  order = list(rng.permutation(records.dtype.names))
+  shuffled = np.empty(len(records), [(n, ">f8") for n in order])
+  for n in order:
+    shuffled[n] = records[n]
+  other = str(tmp_path / "other.ply")
+  plyfile.PlyData([plyfile.PlyElement.describe(shuffled, "vertex")],
+                  byte_order=">").write(other)
+  assert _header(other)[0][1] == "format binary_big_endian 1.0"
+  back, _ = ply.read_ply(other)
+  for field in ("means", "quats", "sh_rest"):
+    np.testing.assert_array_equal(np.asarray(getattr(back, field)),
+                                  np.asarray(getattr(params, field)))

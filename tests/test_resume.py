@@ -1,12 +1,15 @@
 """Kill and resume after capacity growth and a semantic prune: bit-identical."""
 
 import dataclasses
+import os
 
+import jax
 import numpy as np
 from absl.testing import absltest
 
 from clipgs_jax import config
 from clipgs_jax import guidance
+from clipgs_jax import summary
 from clipgs_jax import train
 from test_checkpoint import _assert_states_equal  # pylint: disable=g-bad-import-order
 from test_train import synthetic_scene  # pylint: disable=g-bad-import-order
@@ -51,9 +54,11 @@ class KillAndResumeTest(absltest.TestCase):
     scene = _scene()
     cfg = train.resolve(_config(), scene)
     scorer = guidance.make_scorer(cfg.semantic, scene)
-    fit = lambda workdir, **kw: train.fit(cfg, scene, workdir, scorer=scorer,
-                                          progress=False, **kw)
-    straight = fit(self.create_tempdir().full_path)
+    fit = lambda workdir, **kw: train.fit(
+        cfg, scene, workdir, scorer=scorer, progress=False,
+        summary_dir=os.path.join(workdir, "tb"), **kw)
+    straight_dir = self.create_tempdir().full_path
+    straight = fit(straight_dir)
     workdir = self.create_tempdir().full_path
     killed = fit(workdir, stop_after=KILL_AT)
     initial = train.initial_state(cfg, scene).capacity
@@ -69,6 +74,25 @@ class KillAndResumeTest(absltest.TestCase):
     _assert_states_equal(resumed.state, straight.state)
     self.assertEqual(resumed.prune_events, straight.prune_events)
     self.assertEqual(resumed.scores, straight.scores)
+    # The rows pruned before the kill come back from the checkpoint.
+    self.assertGreater(len(killed.pruned.means), 0)
+    for a, b in zip(jax.tree.leaves(resumed.pruned),
+                    jax.tree.leaves(straight.pruned)):
+      np.testing.assert_array_equal(a, b)
+    # TensorBoard: the killed and the resumed writer's files hold the
+    # uninterrupted run's points, each once.
+    points = lambda d: sorted((r["kind"], r["tag"], r["step"]) for r in
+                              summary.read(os.path.join(d, "tb")))
+    self.assertEqual(points(workdir), points(straight_dir))
+    self.assertLen(os.listdir(os.path.join(workdir, "tb")), 2)
+    tags = {(kind, tag) for kind, tag, _ in points(straight_dir)}
+    self.assertContainsSubset(
+        {("scalar", "train/loss"), ("scalar", "test/psnr"),
+         ("scalar", "densify/num_cloned"),
+         ("scalar", "prune/num_pruned_semantic"),
+         ("histogram", "semantic/s_j"), ("image", "train_view/render"),
+         ("image", "train_view/photo"),
+         ("image", "train_view/ground_truth_mask")}, tags)
     self.assertEqual([dict(p, seconds=0) for p in resumed.curve],
                      [dict(p, seconds=0) for p in straight.curve])
     # The killed state differs from the final one: the test can fail.
