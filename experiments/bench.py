@@ -154,6 +154,14 @@ flags.register_validator(
     "--batch_devices takes BxD items with D dividing B, e.g. 4x2")
 
 
+def _require_scene(what: str, why: str) -> None:
+  """One line naming --bench_scene when --bench=`what` has no scene."""
+  cli.require(_SCENE.value is not None, "bench_scene", _SCENE.value,
+              f"is missing: --bench={what} {why}; pass a scene folder or "
+              "pack, e.g. --bench_scene=DATA/bird")
+  cli.require_file("bench_scene", _SCENE.value)
+
+
 def _value(name: str, flag):
   return flag.value if flag.value is not None else DEFAULTS[
       _BENCH.value].get(name)
@@ -179,10 +187,7 @@ def _results():
               lanes=_LANES.value, tile_size=_TILE_SIZE.value,
               repeats=repeats, max_gib=_MAX_GIB.value)
   elif what == "step":
-    cli.require(_SCENE.value is not None, "bench_scene", _SCENE.value,
-                "is missing: --bench=step times a real view; pass a scene "
-                "folder or pack, e.g. --bench_scene=DATA/bird")
-    cli.require_file("bench_scene", _SCENE.value)
+    _require_scene("step", "times a real view")
     yield from timing.train_step(
         _SCENE.value, _value("bench_downscale", _DOWNSCALE),
         _ints(_value("num_gaussians", _NUM)), view=_VIEW.value,
@@ -202,20 +207,14 @@ def _results():
           _CLIP_VARIANT.value, render_hw, runs=repeats, warmup=_WARMUP.value,
           batch_sizes=_ints(_BATCH_SIZES.value))
   elif what == "features":
-    cli.require(_SCENE.value is not None, "bench_scene", _SCENE.value,
-                "is missing: --bench=features clusters real photos; pass a "
-                "scene folder or pack, e.g. --bench_scene=DATA/bird")
-    cli.require_file("bench_scene", _SCENE.value)
+    _require_scene("features", "clusters real photos")
     downscale = _value("bench_downscale", _DOWNSCALE)
     photos = scene_lib.load_scene(
         _SCENE.value, downscale=downscale).train.images[:repeats]
     yield dict(features.benchmark(photos), scene=_SCENE.value,
                downscale=downscale)
   elif what == "views":
-    cli.require(_SCENE.value is not None, "bench_scene", _SCENE.value,
-                "is missing: --bench=views times a real scene; pass a scene "
-                "folder or pack, e.g. --bench_scene=DATA/bird")
-    cli.require_file("bench_scene", _SCENE.value)
+    _require_scene("views", "times a real scene")
     yield from batch_timing.views_per_second(
         _SCENE.value, _value("bench_downscale", _DOWNSCALE),
         variants=[tuple(int(x) for x in v.split("x")) for v in
