@@ -205,12 +205,7 @@ def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
   if evidence is not None:
     semantic_stats = jax.tree.map(jnp.add, state.semantic, evidence)
   if hist is not None:
-    maps = residual_lib.update(maps, quantile=cfg.semantic.residual_quantile,
-                               decay=cfg.semantic.residual_decay,
-                               median_factor=(
-                                   cfg.semantic.residual_median_factor),
-                               minimum=cfg.semantic.residual_min_threshold,
-                               histogram=hist)
+    maps = view_lib.update_maps(maps, cfg.semantic, histogram=hist)
   metrics = {k: (jnp.mean(v) if k in _MEAN_KEYS else v)
              for k, v in per_view.items()}
   metrics.update(

@@ -157,11 +157,7 @@ def train_step(state: state_lib.TrainState, batch: Batch, scorer=None, *,
   semantic_stats = state.semantic
   maps = state.maps
   if dynamic:
-    maps = residual_lib.update(maps, rmap.residual,
-                               quantile=sem.residual_quantile,
-                               decay=sem.residual_decay,
-                               median_factor=sem.residual_median_factor,
-                               minimum=sem.residual_min_threshold)
+    maps = view_lib.update_maps(maps, sem, res=rmap.residual)
     due = guidance.scores_due(step, sem)
     semantic_stats = semantic_lib.accumulate_pixel(
         state.semantic, probe_grad, out.contribution, out.visible, due)

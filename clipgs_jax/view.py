@@ -18,6 +18,7 @@ from clipgs_jax import losses
 from clipgs_jax import map_sources
 from clipgs_jax import project
 from clipgs_jax import rasterize
+from clipgs_jax import residual as residual_lib
 from clipgs_jax import semantic as semantic_lib
 from clipgs_jax import state as state_lib
 
@@ -205,3 +206,17 @@ def reproduced_evidence(due, proj, cam, bg, cfg, evidence_map, image,
       lambda: rasterize.rasterize(proj, cam, bg, cfg.render,
                                   evidence_map=weighted).evidence,
       lambda: jnp.zeros_like(proj.depths))
+
+
+def update_maps(maps: residual_lib.ResidualState,
+                sem: config_lib.SemanticConfig, *, res: jax.Array | None = None,
+                histogram: jax.Array | None = None
+                ) -> residual_lib.ResidualState:
+  """The residual map's statistics after a step: residual.update with the
+  run's threshold settings, on one view's residuals `res` or on the
+  `histogram` of a batch's (residual.counts summed over its views)."""
+  return residual_lib.update(maps, res, quantile=sem.residual_quantile,
+                             decay=sem.residual_decay,
+                             median_factor=sem.residual_median_factor,
+                             minimum=sem.residual_min_threshold,
+                             histogram=histogram)
