@@ -206,10 +206,11 @@ def view_map(params: gaussians.GaussianParams, alive, stats, scorer, views,
              index: int, cfg: config_lib.Config, degree) -> np.ndarray:
   """float32 [H, W] in [0, 1], the transient map m a training step on view
   `index` of `views` would use now (mask_quality's arguments)."""
-  cams = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), views.cameras)
+  # The one camera, not every view's, moves to the device per call.
+  cam = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32),
+                     camera_lib.camera_at(views.cameras, index))
   return np.asarray(_view_map_fn(config_lib.compiled_part(cfg))(
-      params, alive, stats, scorer, jnp.int32(index),
-      camera_lib.camera_at(cams, index),
+      params, alive, stats, scorer, jnp.int32(index), cam,
       jnp.asarray(views.images[index], jnp.float32), degree))
 
 
