@@ -184,10 +184,9 @@ def eval_point(state: state_lib.TrainState, flog: FitLog, step: int,
            "test_psnr": result["mean/psnr"]}
   quality = flog.mask_quality
   if ctx.cfg.semantic.localized and ctx.scene.train.masks is not None:
-    degree = sh.active_degree(done, ctx.cfg.densify.sh_degree_every,
-                              ctx.cfg.gaussians.sh_degree)
     quality = evaluation.mask_quality(params, alive, maps, ctx.scorer,
-                                      ctx.scene.train, ctx.cfg, degree)
+                                      ctx.scene.train, ctx.cfg,
+                                      _degree(done, ctx))
     point.update({f"mask_{k}": quality[k]
                   for k in ("precision", "recall", "iou")})
     _log.info("step %d: transient maps vs ground truth: precision %s, "
@@ -204,9 +203,9 @@ def eval_point(state: state_lib.TrainState, flog: FitLog, step: int,
                              mask_quality=quality)
 
 
-def _degree(state: state_lib.TrainState, ctx: Context) -> jax.Array:
-  """int32 [], the SH degree the train steps use now."""
-  return sh.active_degree(state.step, ctx.cfg.densify.sh_degree_every,
+def _degree(step: jax.Array, ctx: Context) -> jax.Array:
+  """int32 [], the SH degree the train steps use after `step` steps."""
+  return sh.active_degree(step, ctx.cfg.densify.sh_degree_every,
                           ctx.cfg.gaussians.sh_degree)
 
 
@@ -233,7 +232,7 @@ def summarize_view(state: state_lib.TrainState, step: int,
   if ctx.cfg.semantic.localized and ctx.scorer is not None:
     ctx.summary.image(step, "train_view/transient_map", evaluation.view_map(
         state.params, state.alive, state.maps, ctx.scorer, train, i,
-        ctx.cfg, _degree(state, ctx)))
+        ctx.cfg, _degree(state.step, ctx)))
   if train.masks is not None:
     ctx.summary.image(step, "train_view/ground_truth_mask", train.masks[i])
 
