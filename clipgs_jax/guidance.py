@@ -123,7 +123,7 @@ def make_scorer(sem: config_lib.SemanticConfig, scene, *,
   """The scorer `sem` asks for, or None when guidance is off.
 
   Args:
-    sem: the checked semantic config (config.check); `sem.enabled` False
+    sem: the checked semantic config (config_file.check); `sem.enabled` False
       (scorer "off") returns None and imports nothing.
     scene: a data.scene.Scene; the oracle reads `scene.train.masks`.
     clip_weights: the --clip_weights flag (else $CLIPGS_CLIP_WEIGHTS).

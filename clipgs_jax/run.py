@@ -22,6 +22,7 @@ import numpy as np
 from clipgs_jax import checkpoint
 from clipgs_jax import cli
 from clipgs_jax import config as config_lib
+from clipgs_jax import config_file
 from clipgs_jax import evaluation
 from clipgs_jax import fileio
 from clipgs_jax import gaussians
@@ -90,7 +91,7 @@ def load_run(workdir: str):
   A run.json without "train_split" (older runs) means "clutter".
   """
   run = _read_json(os.path.join(workdir, RUN_JSON), "scene and downscale")
-  cfg = config_lib.from_dict(_read_json(os.path.join(workdir, CONFIG_JSON),
+  cfg = config_file.from_dict(_read_json(os.path.join(workdir, CONFIG_JSON),
                                         "the resolved config"))
   scene = scene_lib.load_scene(run["scene"], downscale=run["downscale"],
                                train_split=run.get("train_split", "clutter"))
@@ -210,7 +211,7 @@ def train_and_evaluate(cfg: config_lib.Config, workdir: str, *,
   behind (cli.output_dir).
 
   Args:
-    cfg: the checked config (config.check).
+    cfg: the checked config (config_file.check).
     workdir: the run folder (created).
     resume: continue from the folder's checkpoint.
     clip_weights: CLIP weights for clip scorers (else

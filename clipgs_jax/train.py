@@ -280,7 +280,7 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
   checkpoint at step N after it.
 
   Args:
-    cfg: the checked config (config.check), resolved for `scene`
+    cfg: the checked config (config_file.check), resolved for `scene`
       (`resolve`).
     scene: a data.scene.Scene (train/test Views, points, extent).
     workdir: where the checkpoint goes (created if missing).

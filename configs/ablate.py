@@ -24,7 +24,7 @@ ablate.json.
 
 import os
 
-from clipgs_jax import config as config_lib
+from clipgs_jax import config_file
 
 GENERIC_PROMPTS = ("a photo of an object", "a photo of a thing")
 DESCRIPTIONS = {
@@ -41,7 +41,7 @@ DESCRIPTIONS = {
 
 
 def get_config():
-  cd = config_lib.load_file(os.path.join(os.path.dirname(__file__),
+  cd = config_file.load_file(os.path.join(os.path.dirname(__file__),
                                          "table.py"))
   rows = cd.sweep.row_overrides
   oracle = {"scorer": "oracle"}

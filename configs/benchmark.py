@@ -10,6 +10,7 @@ points, and the paper's semantic schedule scaled to the steps
 """
 
 from clipgs_jax import config as config_lib
+from clipgs_jax import config_file
 
 STEPS = 2500          # a table row in 6-25 min on one core of the 2-core box
 DOWNSCALE = 8         # 68x120 bird / 108x69 bonsai views
@@ -22,7 +23,7 @@ TILE_SIZE = 8
 
 
 def get_config():
-  cd = config_lib.to_config_dict(config_lib.Config())
+  cd = config_file.to_config_dict(config_lib.Config())
   cd.train.steps = STEPS
   cd.data.downscale = DOWNSCALE
   cd.render.tile_budget = TILE_BUDGET

@@ -10,9 +10,10 @@ default_scene.TRAIN_STEPS on the embedded scene (no --scene).
 from ml_collections import config_dict
 
 from clipgs_jax import config as config_lib
+from clipgs_jax import config_file
 
 
 def get_config():
-  cd = config_lib.to_config_dict(config_lib.Config())
+  cd = config_file.to_config_dict(config_lib.Config())
   cd.train.steps = config_dict.placeholder(int)   # None: auto, see above
   return cd

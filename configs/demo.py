@@ -19,13 +19,14 @@ test metrics and run time).
 from ml_collections import config_dict
 
 from clipgs_jax import config as config_lib
+from clipgs_jax import config_file
 from clipgs_jax.data import default_scene
 
 CURVE_POINTS = 10     # test PSNR every steps // 10
 
 
 def get_config():
-  cd = config_lib.to_config_dict(config_lib.Config())
+  cd = config_file.to_config_dict(config_lib.Config())
   cd.train.steps = default_scene.TRAIN_STEPS
   # One checkpoint, at the end, whatever --config.train.steps says.
   cd.train.checkpoint_every = cd.train.get_ref("steps")

@@ -8,10 +8,11 @@ checkpoints.
 """
 
 from clipgs_jax import config as config_lib
+from clipgs_jax import config_file
 
 
 def get_config():
-  cd = config_lib.to_config_dict(config_lib.Config())
+  cd = config_file.to_config_dict(config_lib.Config())
   cd.gaussians.update(capacity=0, min_capacity=256, max_capacity=16384,
                       sh_degree=1, random_init_points=500)
   # Densify at 20 and 30, SH degree 1 from 20. No opacity reset: it needs

@@ -34,7 +34,7 @@ import os
 
 from ml_collections import config_dict
 
-from clipgs_jax import config as config_lib
+from clipgs_jax import config_file
 from clipgs_jax.lab import table
 
 RESET_QUIET = 500  # 1/6 of the 3,000-step reset cadence
@@ -50,7 +50,7 @@ def _merge(*sections: dict) -> dict:
 
 
 def get_config():
-  cd = config_lib.load_file(os.path.join(os.path.dirname(__file__),
+  cd = config_file.load_file(os.path.join(os.path.dirname(__file__),
                                          "benchmark.py"))
   off = {"scorer": "off"}
   # The localized rows hold the opacity loss and eq. 13 for 500 steps

@@ -15,13 +15,13 @@ s_j_histogram.png.
 
 import os
 
-from clipgs_jax import config as config_lib
+from clipgs_jax import config_file
 
 PAPER_TAUS = "0.3,0.02,0.015,0.01"   # the paper's Table 5 sweep
 
 
 def get_config():
-  cd = config_lib.load_file(os.path.join(os.path.dirname(__file__),
+  cd = config_file.load_file(os.path.join(os.path.dirname(__file__),
                                          "table.py"))
   cd.sweep.kind = "tau_sweep"
   cd.sweep.taus = PAPER_TAUS

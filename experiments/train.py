@@ -28,7 +28,7 @@ import ml_collections
 from ml_collections import config_flags
 
 from clipgs_jax import cli
-from clipgs_jax import config as config_lib
+from clipgs_jax import config_file
 from clipgs_jax import run
 from clipgs_jax import sharding
 from clipgs_jax.lab import sweep
@@ -81,7 +81,7 @@ def main(argv):
   if _SCENE.value is not None:
     cd.data.scene = _SCENE.value
   out = run.train_and_evaluate(
-      config_lib.check(cd), _WORKDIR.value, resume=_RESUME.value,
+      config_file.check(cd), _WORKDIR.value, resume=_RESUME.value,
       clip_weights=_CLIP_WEIGHTS.value, run_info=run_info)
   if not sharding.is_writer():
     return

@@ -60,8 +60,8 @@ def canvas_scene():
 def config():
   """The runs' config: the smoke preset's densify, ORACLE-PIXEL evidence
   with loss masking and its prune."""
-  from clipgs_jax import config as config_lib  # pylint: disable=g-import-not-at-top
-  cfg = config_lib.named("smoke")
+  from clipgs_jax import config_file  # pylint: disable=g-import-not-at-top
+  cfg = config_file.named("smoke")
   return dataclasses.replace(
       cfg,
       gaussians=dataclasses.replace(cfg.gaussians, capacity=CAPACITY),

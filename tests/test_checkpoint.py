@@ -11,7 +11,7 @@ import numpy as np
 from absl.testing import absltest
 
 from clipgs_jax import checkpoint
-from clipgs_jax import config
+from clipgs_jax import config_file
 from clipgs_jax import fileio
 from clipgs_jax import gaussians
 from clipgs_jax import state as state_lib
@@ -58,7 +58,7 @@ class RoundTripTest(absltest.TestCase):
     template = _state(seed=1).replace(step=jnp.int32(0))
     restored, meta = checkpoint.restore(path, template)
     _assert_states_equal(restored, state)
-    self.assertEqual(config.from_dict(meta["config"]), CFG)
+    self.assertEqual(config_file.from_dict(meta["config"]), CFG)
     self.assertEqual(meta["extra"], {"curve": [{"step": 1}]})
     # Flat '/'-keyed names, loadable without pickle.
     with np.load(path, allow_pickle=False) as data:

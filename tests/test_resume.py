@@ -7,7 +7,7 @@ import jax
 import numpy as np
 from absl.testing import absltest
 
-from clipgs_jax import config
+from clipgs_jax import config_file
 from clipgs_jax import guidance
 from clipgs_jax import summary
 from clipgs_jax import train
@@ -33,7 +33,7 @@ def _scene():
 
 
 def _config():
-  cfg = config.named("smoke")
+  cfg = config_file.named("smoke")
   # Oracle scores from step 0, opacity loss from 10, prunes at 25, 35, 45,
   # 55. With every row seen by every view, only the contribution weighting
   # spreads s_j (measured at step 60: median 0.004, 90th percentile 0.015),

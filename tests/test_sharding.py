@@ -17,6 +17,7 @@ from absl.testing import absltest
 
 from clipgs_jax import camera
 from clipgs_jax import config
+from clipgs_jax import config_file
 from clipgs_jax import evaluation
 from clipgs_jax import losses
 from clipgs_jax import metrics
@@ -122,7 +123,7 @@ class LanesTest(absltest.TestCase):
                                 "over the 2 devices"):
       sharding.make_mesh(3, [device, device])
     with self.assertRaisesRegex(Exception, "batch_size=0"):
-      config.check({"train": {"batch_size": 0}})
+      config_file.check({"train": {"batch_size": 0}})
 
   def test_one_view_per_step_on_photos_of_one_size_is_train_step(self):
     scene = test_train.synthetic_scene(num=4, size=16, num_train=4)

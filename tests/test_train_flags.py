@@ -11,6 +11,7 @@ from absl.testing import absltest
 from absl.testing import parameterized
 
 from clipgs_jax import config
+from clipgs_jax import config_file
 from clipgs_jax.data import default_scene
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -18,20 +19,20 @@ ORACLE = config.SemanticConfig(scorer="oracle")
 
 
 def _cd(name: str):
-  return config.load_file(os.path.join(config.CONFIGS_DIR, name + ".py"))
+  return config_file.load_file(os.path.join(config_file.CONFIGS_DIR, name + ".py"))
 
 
 class ConfigFilesTest(absltest.TestCase):
 
   def test_default_is_the_paper_config(self):
-    cfg = config.check(_cd("default"))
+    cfg = config_file.check(_cd("default"))
     # The embedded scene's steps, and 20 curve points of them.
     steps = default_scene.TRAIN_STEPS
     self.assertEqual(cfg.train.steps, steps)
     self.assertEqual(cfg.train.eval_every, steps // 20)
     cd = _cd("default")
     cd.data.scene = str(ROOT)           # any folder: a scene of one's own
-    self.assertEqual(config.check(cd).train.steps,
+    self.assertEqual(config_file.check(cd).train.steps,
                      config.TrainConfig().steps)
     # Apart from the steps and the curve, every field is Config()'s.
     paper = config.Config()
@@ -43,17 +44,17 @@ class ConfigFilesTest(absltest.TestCase):
     pack = self.create_tempfile("scene.npz").full_path
     cd = _cd("default")
     cd.data.scene = pack
-    self.assertEqual(config.check(cd).data.scene, pack)
+    self.assertEqual(config_file.check(cd).data.scene, pack)
 
   def test_smoke_is_the_old_preset(self):
-    cfg = config.named("smoke")
+    cfg = config_file.named("smoke")
     self.assertEqual(cfg.train, config.TrainConfig(
         steps=60, log_every=10, eval_every=20, checkpoint_every=30))
     self.assertEqual(cfg.gaussians.min_capacity, 256)
     self.assertEqual(cfg.densify.opacity_reset_every, 0)
 
   def test_benchmark_scales_the_schedule(self):
-    cfg = config.named("benchmark")
+    cfg = config_file.named("benchmark")
     self.assertEqual((cfg.train.steps, cfg.data.downscale,
                       cfg.render.tile_budget, cfg.train.eval_every),
                      (2500, 8, 8192, 125))
@@ -67,14 +68,14 @@ class ConfigFilesTest(absltest.TestCase):
     self.assertEqual(cd.train.checkpoint_every, 100)
 
   def test_round_trip_and_unknown_keys(self):
-    cfg = config.named("benchmark")
-    self.assertEqual(config.from_dict(config.to_dict(cfg)), cfg)
+    cfg = config_file.named("benchmark")
+    self.assertEqual(config_file.from_dict(config.to_dict(cfg)), cfg)
     with self.assertRaisesRegex(ValueError, "unknown key densify.evry"):
-      config.from_config_dict({"densify": {"evry": 3}})
+      config_file.from_config_dict({"densify": {"evry": 3}})
     with self.assertRaisesRegex(ValueError, "train.seed='0' must be of type int"):
-      config.from_config_dict({"train": {"seed": "0"}})
+      config_file.from_config_dict({"train": {"seed": "0"}})
     with self.assertRaisesRegex(FileNotFoundError, "does not exist"):
-      config.load_file("/nonexistent/config.py")
+      config_file.load_file("/nonexistent/config.py")
 
 
 class BadValuesTest(parameterized.TestCase):
@@ -108,15 +109,15 @@ class BadValuesTest(parameterized.TestCase):
     for section, values in overrides.items():
       cd[section].update(values)
     with self.assertRaises((app.UsageError, FileNotFoundError)) as e:
-      config.check(cd)
+      config_file.check(cd)
     self.assertIn(message, str(e.exception))
 
 
 class SemanticCheckTest(parameterized.TestCase):
-  """config.check names the semantic field that cannot run."""
+  """config_file.check names the semantic field that cannot run."""
 
   def _check(self, sem: config.SemanticConfig) -> config.Config:
-    return config.check({"semantic": dataclasses.asdict(sem)})
+    return config_file.check({"semantic": dataclasses.asdict(sem)})
 
   @parameterized.parameters(
       ("scorer", "bogus", "scorer="), ("tau", 1.5, "tau="),

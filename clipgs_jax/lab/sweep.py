@@ -18,6 +18,7 @@ import numpy as np
 
 from clipgs_jax import cli
 from clipgs_jax import config as config_lib
+from clipgs_jax import config_file
 from clipgs_jax import fileio
 from clipgs_jax import plots
 from clipgs_jax import run as run_lib
@@ -89,7 +90,7 @@ def row_config(cd: ml_collections.ConfigDict, row: str,
   del values["sweep"]
   values = _merge(_merge(values, rows[row].to_dict()), overrides)
   values["data"] = dict(values["data"], scene=scene)
-  return config_lib.check(values)
+  return config_file.check(values)
 
 
 def _settings(cfg: config_lib.Config, clip_weights: str | None,
@@ -161,7 +162,7 @@ def run(cd: ml_collections.ConfigDict, workdir: str, *,
               run_info: dict[str, Any] | None = None) -> dict:
   """Every row of the sweep in cd.sweep, then its table or comparison.
 
-  Every row's config is built and checked (config.check) before the first
+  Every row's config is built and checked (config_file.check) before the first
   row runs; each row is one run.train_and_evaluate.
 
   Args:

@@ -15,6 +15,7 @@ import numpy as np
 from clipgs_jax import camera as camera_lib
 from clipgs_jax import checkpoint
 from clipgs_jax import config as config_lib
+from clipgs_jax import config_file
 from clipgs_jax import evaluation
 from clipgs_jax import gaussians
 from clipgs_jax import guidance
@@ -127,7 +128,7 @@ def load(path: str) -> ViewedRun:
     raise ValueError(f"{path} is not a run folder (no {', '.join(missing)})"
                      "; pass a folder written by experiments/train.py")
   info = _read_json(os.path.join(path, run_lib.RUN_JSON))
-  cfg = config_lib.from_dict(_read_json(os.path.join(path,
+  cfg = config_file.from_dict(_read_json(os.path.join(path,
                                                      run_lib.CONFIG_JSON)))
   ckpt = os.path.join(path, train.CHECKPOINT_NAME)
   ply_path = os.path.join(path, run_lib.POINT_CLOUD_PLY)

@@ -24,7 +24,7 @@ import numpy as np
 
 import browser
 from clipgs_jax import checkpoint
-from clipgs_jax import config as config_lib
+from clipgs_jax import config_file
 from clipgs_jax import gaussians
 from clipgs_jax import ply
 from clipgs_jax import run as run_lib
@@ -43,7 +43,7 @@ def fake_run(like: str, out: str, num: int, seed: int = 0) -> None:
   for name in (run_lib.RUN_JSON, run_lib.CONFIG_JSON):
     shutil.copy(os.path.join(like, name), out)
   with open(os.path.join(out, run_lib.CONFIG_JSON)) as f:
-    cfg = config_lib.from_dict(json.load(f))
+    cfg = config_file.from_dict(json.load(f))
   like_means = np.asarray(ply.read_ply(
       os.path.join(like, run_lib.POINT_CLOUD_PLY))[0].means)
   rng = np.random.default_rng(seed)

@@ -6,7 +6,7 @@ from unittest import mock
 from absl.testing import absltest
 import numpy as np
 
-from clipgs_jax import config
+from clipgs_jax import config_file
 from clipgs_jax import run as run_lib
 from clipgs_jax.lab import sweep
 from clipgs_jax.lab import table
@@ -25,7 +25,7 @@ def _metrics(psnr, *, alive=700, by_score=200, by_rule=100):
 
 
 def _cd(name):
-  return config.load_file(os.path.join(config.CONFIGS_DIR, name + ".py"))
+  return config_file.load_file(os.path.join(config_file.CONFIGS_DIR, name + ".py"))
 
 
 class CalibrateTest(absltest.TestCase):

@@ -12,6 +12,7 @@ import pytest
 from clipgs_jax import camera as camera_lib
 from clipgs_jax import checkpoint
 from clipgs_jax import config as config_lib
+from clipgs_jax import config_file
 from clipgs_jax.lab import ghost_evidence
 from clipgs_jax import fileio
 from clipgs_jax import rasterize
@@ -73,7 +74,7 @@ def saved_run(built, tmp_path_factory):  # pylint: disable=redefined-outer-name
   with open(os.path.join(path, "transients.json")) as f:
     manifest = json.load(f)
   scene = scene_lib.load_scene(path)
-  cfg = train.resolve(config_lib.named("smoke"), scene)
+  cfg = train.resolve(config_file.named("smoke"), scene)
   state = train.initial_state(cfg, scene)
   free = np.flatnonzero(~np.asarray(state.alive))[:NUM_GHOSTS]
   corners = np.asarray(manifest["billboards"][0]["corners"])

@@ -15,6 +15,7 @@ import pytest
 
 from clipgs_jax import checkpoint
 from clipgs_jax import config as config_lib
+from clipgs_jax import config_file
 from clipgs_jax import evaluation
 from clipgs_jax import fileio
 from clipgs_jax.lab import report
@@ -90,7 +91,7 @@ def saved_run(tmp_path_factory):
   workdir = tmp_path_factory.mktemp("run")
   scene_path = default_scene.ensure_default_scene()
   scene = scene_lib.load_scene(scene_path, downscale=DOWNSCALE)
-  cfg = train.resolve(config_lib.named("smoke"), scene)
+  cfg = train.resolve(config_file.named("smoke"), scene)
   state = train.initial_state(cfg, scene)
   c = state.capacity
   high = jnp.arange(c) < c // 2

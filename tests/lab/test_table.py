@@ -9,6 +9,7 @@ from unittest import mock
 from absl.testing import absltest
 
 from clipgs_jax import config
+from clipgs_jax import config_file
 from clipgs_jax import run as run_lib
 from clipgs_jax.lab import sweep
 from clipgs_jax.lab import table
@@ -26,7 +27,7 @@ def _metrics(psnr, *, fraction_pruned=None, label=None, num=1000):
 
 
 def _table_cd():
-  return config.load_file(os.path.join(config.CONFIGS_DIR, "table.py"))
+  return config_file.load_file(os.path.join(config_file.CONFIGS_DIR, "table.py"))
 
 
 def _row_cfg(row: str) -> config.Config:
@@ -129,7 +130,7 @@ class FormatTest(absltest.TestCase):
         "clip_pixel", "residual", "residual_features",
         "oracle_patch_residual", "clip_residual", "clean", "residual_clean",
         "residual_features_clean"])
-    bench = config.named("benchmark")
+    bench = config_file.named("benchmark")
     sem = bench.semantic      # scaled to the steps
     self.assertEqual(cfgs["vanilla"].semantic.scorer, "off")
     self.assertEqual(cfgs["clean"].data.train_split, "clean")
@@ -168,7 +169,7 @@ class EndToEndTest(absltest.TestCase):
 
   def _cd(self, scene):
     cd = _table_cd()
-    smoke = config.load_file(os.path.join(config.CONFIGS_DIR, "smoke.py"))
+    smoke = config_file.load_file(os.path.join(config_file.CONFIGS_DIR, "smoke.py"))
     for section in ("gaussians", "densify", "train"):
       cd[section].update(smoke[section])
     cd.train.steps = 10
@@ -207,8 +208,8 @@ class EndToEndTest(absltest.TestCase):
                      [r["psnr"] for r in rows])
 
   def test_demo_writes_the_comparison(self):
-    cd = config.load_file(os.path.join(config.CONFIGS_DIR, "demo.py"))
-    smoke = config.load_file(os.path.join(config.CONFIGS_DIR, "smoke.py"))
+    cd = config_file.load_file(os.path.join(config_file.CONFIGS_DIR, "demo.py"))
+    smoke = config_file.load_file(os.path.join(config_file.CONFIGS_DIR, "smoke.py"))
     cd.gaussians.update(smoke.gaussians)
     cd.train.steps = 10
     # demo.py asks for 10 curve points, i.e. a test evaluation at every one
