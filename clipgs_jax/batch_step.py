@@ -28,7 +28,6 @@ import functools
 
 import jax
 import jax.numpy as jnp
-import optax
 from jax.sharding import PartitionSpec
 
 from clipgs_jax import camera as camera_lib
@@ -189,14 +188,7 @@ def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
   max_radius = jax.lax.pmax(dens.max_radius, sharding.AXIS)
   per_view = jax.lax.all_gather(per_view, sharding.AXIS, tiled=True)
 
-  # The batch's mean loss; dead rows get no gradient from the render.
-  grads = jax.tree.map(
-      lambda g: jnp.where(
-          state.alive.reshape((-1,) + (1,) * (g.ndim - 1)), g / batch, 0.0),
-      grads)
-  tx = optim.make(cfg.optim, cfg.scene_extent, cfg.train.steps)
-  updates, opt_state = tx.update(grads, state.opt_state, state.params)
-  params = optax.apply_updates(state.params, updates)
+  params, opt_state, grad_norms = optim.apply(state, grads, cfg, batch)
   old = state.densify
   stats = state_lib.DensifyStats(
       grad_accum=old.grad_accum + grad_accum, denom=old.denom + denom,
@@ -216,8 +208,7 @@ def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
                               cfg.train.steps))
   if cfg.semantic.uses_residual:
     metrics["residual_threshold"] = state.maps.threshold
-  for field in optim.FIELDS:
-    metrics[f"grad_norm/{field}"] = optax.tree.norm(getattr(grads, field))
+  metrics.update(grad_norms)
   new_state = state.replace(params=params, opt_state=opt_state,
                             densify=stats, semantic=semantic_stats,
                             step=step + 1, maps=maps)

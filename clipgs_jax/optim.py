@@ -62,6 +62,30 @@ def make(cfg: config_lib.OptimConfig, extent: float, total_steps: int
   return optax.partition(transforms, _labels())
 
 
+def apply(state: state_lib.TrainState, grads: gaussians.GaussianParams,
+          cfg: config_lib.Config, batch_size: int = 1):
+  """One Adam step of the train state on the summed gradients of a batch.
+
+  Dead rows get no gradient from the render; the mask makes it explicit.
+  The gradient is that of the batch's mean loss (the sum over its
+  `batch_size` views divided by it; B = 1 divides by nothing).
+
+  Returns:
+    (params, opt_state, metrics): the updated parameters and Adam state,
+    and "grad_norm/<field>" of the masked mean gradient.
+  """
+  def masked(g):
+    g = g if batch_size == 1 else g / batch_size
+    return jnp.where(state.alive.reshape((-1,) + (1,) * (g.ndim - 1)), g, 0.0)
+  grads = jax.tree.map(masked, grads)
+  tx = make(cfg.optim, cfg.scene_extent, cfg.train.steps)
+  updates, opt_state = tx.update(grads, state.opt_state, state.params)
+  params = optax.apply_updates(state.params, updates)
+  metrics = {f"grad_norm/{field}": optax.tree.norm(getattr(grads, field))
+             for field in FIELDS}
+  return params, opt_state, metrics
+
+
 def zero_field(opt_state, field: str, capacity: int) -> optax.OptState:
   """Zeroes the Adam moments of one GaussianParams field for every row."""
   if field not in FIELDS:

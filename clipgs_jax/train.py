@@ -19,13 +19,9 @@ from clipgs_jax import densify
 from clipgs_jax import gaussians
 from clipgs_jax import guidance
 from clipgs_jax import initialize
-from clipgs_jax import losses
 from clipgs_jax import loop
-from clipgs_jax import map_sources
 from clipgs_jax import metrics as metrics_lib
 from clipgs_jax import optim
-from clipgs_jax import project
-from clipgs_jax import rasterize
 from clipgs_jax import residual as residual_lib
 from clipgs_jax import semantic as semantic_lib
 from clipgs_jax import sh
@@ -130,13 +126,7 @@ def train_step(state: state_lib.TrainState, batch: Batch, scorer=None, *,
    evidence_map) = view_lib.render_and_grad(
        state, scorer, cfg, view=view, cam=cam, target=target, bg=bg,
        degree=degree, key=state.key)
-  # Dead rows get no gradient from the render; the mask makes it explicit.
-  grads = jax.tree.map(
-      lambda g: jnp.where(
-          state.alive.reshape((-1,) + (1,) * (g.ndim - 1)), g, 0.0), grads)
-  tx = make_optimizer(cfg)
-  updates, opt_state = tx.update(grads, state.opt_state, state.params)
-  params = optax.apply_updates(state.params, updates)
+  params, opt_state, grad_norms = optim.apply(state, grads, cfg)
 
   proj = jax.lax.stop_gradient(proj)
   seen = densify.on_screen(proj, width, height) & state.alive
@@ -152,8 +142,7 @@ def train_step(state: state_lib.TrainState, batch: Batch, scorer=None, *,
       "means_lr": optim.means_lr(step, cfg.optim, cfg.scene_extent,
                                  cfg.train.steps),
   }
-  for field in optim.FIELDS:
-    metrics[f"grad_norm/{field}"] = optax.tree.norm(getattr(grads, field))
+  metrics.update(grad_norms)
   semantic_stats = state.semantic
   maps = state.maps
   if dynamic:
