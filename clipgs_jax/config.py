@@ -178,8 +178,10 @@ class SemanticConfig:
   residual_median_factor: float = 3.0  # threshold >= this x the median
   #   residual (0: the quantile alone; BUILD_NOTES.md, "Transient masks
   #   without an oracle": a quantile masks its share of a clean view too)
-  residual_min_threshold: float = 0.0  # threshold >= this mean absolute
-  #   colour error (0: none)
+  residual_min_threshold: float = 0.15  # threshold >= this mean absolute
+  #   colour error (0: none). Relative floors stay at the fit's own error
+  #   level, so a clean view stays masked where the fit lags; an absolute
+  #   one lets a clean view's map shrink as the fit improves (BUILD_NOTES)
   features: str = ""           # residual map: "" per pixel, or "alex" /
   #   "vgg": each photo's ImageNet-feature regions (features.py) take the
   #   majority verdict of the residual test inside them
