@@ -25,7 +25,8 @@ semantic: step-time overhead of guidance over the vanilla step.
 features: the feature regions of the first --repeats training photos
   (per photo, compiled once) and their per-step vote (features.benchmark).
 views: views per second of B views per step on D devices (BxD), every
-  variant in one process, timed round-robin; on a CPU the devices are
+  variant in one process, timed round-robin, each step waited for and 10
+  steps back to back (as training runs them); on a CPU the devices are
   --host_devices forced host devices sharing its cores.
 The lab's functions (clipgs_jax/lab/timing.py, clipgs_jax/lab/
 clip_timing.py) document every field.
