@@ -8,7 +8,8 @@
 Each row of each benchmark (a RobustNeRF-layout scene from
 make_transient_benchmark) is one run into ROOT/<benchmark basename>/<row>/,
 with the settings of configs/benchmark.py plus the row's overrides below
-(every --config.* override applies to every row). Rows resume, and a row
+(every --config.* override applies to every row; one that a chosen row
+sets itself is refused, since the row's value would win). Rows resume, and a row
 whose metrics.json has train.steps steps is skipped. The clip rows run only
 with --clip_weights. Writes ROOT/table.md and ROOT/table.json.
 

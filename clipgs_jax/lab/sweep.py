@@ -77,6 +77,39 @@ def _names(text: str) -> list[str]:
   return [t.strip() for t in str(text or "").split(",") if t.strip()]
 
 
+def command_line_keys(argv) -> set[str]:
+  """The config keys that `--config.KEY=VALUE` arguments in argv set."""
+  keys = set()
+  for arg in argv or ():
+    if arg.startswith("--config."):
+      keys.add(arg[len("--config."):].split("=", 1)[0])
+  return keys
+
+
+def check_row_overrides(cd: ml_collections.ConfigDict, rows: list[str],
+                        keys: set[str]) -> None:
+  """Refuses a command-line override that a row's own override replaces.
+
+  A row's overrides win over the base config, command line included, so
+  `--config.train.lambda_dssim=0.2` would not reach a row that sets it
+  (the residual rows set 0): one line naming the row and the key.
+  """
+  for row in rows:
+    pinned = cd.sweep.row_overrides.get(row)
+    if pinned is None:
+      continue
+    for key in sorted(keys):
+      section, _, field = key.partition(".")
+      values = pinned.to_dict().get(section)
+      if not (isinstance(values, dict) and field in values):
+        continue
+      if values[field] != cd[section][field]:
+        raise app.UsageError(
+            f"--config.{key}={cd[section][field]} does not reach row {row!r},"
+            f" which sets {key}={values[field]}; leave that row out of "
+            "--config.sweep.rows or drop the flag")
+
+
 def row_config(cd: ml_collections.ConfigDict, row: str,
                scene: str | None = None, **overrides) -> config_lib.Config:
   """The checked Config of a sweep's row: the base config (cd without its
@@ -197,6 +230,7 @@ def run(cd: ml_collections.ConfigDict, workdir: str, *,
   cli.require(len(set(names)) == len(names), "scene", ",".join(names),
               "names two benchmarks of the same basename; rename one")
   rows = _names(sweep.rows)
+  check_row_overrides(cd, rows, command_line_keys(run_info.get("argv")))
   plan = []    # (benchmark name, row, tau or None, Config)
   for bench, name in zip(benchmarks, names):
     for row in rows:

@@ -6,6 +6,7 @@ import os
 import pathlib
 from unittest import mock
 
+from absl import app
 from absl.testing import absltest
 
 from clipgs_jax import config
@@ -121,6 +122,20 @@ class FormatTest(absltest.TestCase):
     self.assertIn("FAILED (error: no weights)", clip)
     self.assertIn("| 24.00 |", clean)
     self.assertTrue(clean.endswith("| — | — | — | — |"), clean)
+
+  def test_a_flag_a_row_overrides_is_refused(self):
+    keys = sweep.command_line_keys(
+        ["train.py", "--config=configs/table.py",
+         "--config.train.lambda_dssim=0.2", "--scene=X"])
+    self.assertEqual(keys, {"train.lambda_dssim"})
+    cd = _table_cd()
+    cd.train.lambda_dssim = 0.2      # as the flag leaves it
+    sweep.check_row_overrides(cd, ["vanilla", "clean"], keys)
+    with self.assertRaisesRegex(app.UsageError,
+                                "does not reach row 'residual'"):
+      sweep.check_row_overrides(cd, ["vanilla", "residual"], keys)
+    cd.train.lambda_dssim = 0.0      # the row's own value: no conflict
+    sweep.check_row_overrides(cd, ["residual"], keys)
 
   def test_row_configs(self):
     # The rows of configs/table.py: the old table.py flags, as overrides.
