@@ -62,6 +62,12 @@ def make(cfg: config_lib.OptimConfig, extent: float, total_steps: int
   return optax.partition(transforms, _labels())
 
 
+def for_run(cfg: config_lib.Config) -> optax.GradientTransformation:
+  """The run's optimizer: `make` with its learning rates, scene extent
+  (the means' schedule) and step count."""
+  return make(cfg.optim, cfg.scene_extent, cfg.train.steps)
+
+
 def apply(state: state_lib.TrainState, grads: gaussians.GaussianParams,
           cfg: config_lib.Config, batch_size: int = 1):
   """One Adam step of the train state on the summed gradients of a batch.
@@ -78,8 +84,7 @@ def apply(state: state_lib.TrainState, grads: gaussians.GaussianParams,
     g = g if batch_size == 1 else g / batch_size
     return jnp.where(state.alive.reshape((-1,) + (1,) * (g.ndim - 1)), g, 0.0)
   grads = jax.tree.map(masked, grads)
-  tx = make(cfg.optim, cfg.scene_extent, cfg.train.steps)
-  updates, opt_state = tx.update(grads, state.opt_state, state.params)
+  updates, opt_state = for_run(cfg).update(grads, state.opt_state, state.params)
   params = optax.apply_updates(state.params, updates)
   metrics = {f"grad_norm/{field}": optax.tree.norm(getattr(grads, field))
              for field in FIELDS}

@@ -10,7 +10,6 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
 from clipgs_jax import batch_step
 from clipgs_jax import camera as camera_lib
@@ -68,10 +67,6 @@ def make_batch(views) -> Batch:
   return Batch(images=jnp.asarray(images), cameras=cams)
 
 
-def make_optimizer(cfg: config_lib.Config) -> optax.GradientTransformation:
-  return optim.make(cfg.optim, cfg.scene_extent, cfg.train.steps)
-
-
 def init_state(cfg: config_lib.Config, params: gaussians.GaussianParams,
                alive) -> state_lib.TrainState:
   """Step-0 state: zero moments and statistics, the run's key from seed."""
@@ -84,7 +79,7 @@ def init_state(cfg: config_lib.Config, params: gaussians.GaussianParams,
   capacity = alive.shape[0]
   return state_lib.TrainState(
       params=params, alive=alive,
-      opt_state=make_optimizer(cfg).init(params),
+      opt_state=optim.for_run(cfg).init(params),
       densify=state_lib.DensifyStats.zeros(capacity),
       semantic=state_lib.SemanticStats.zeros(capacity),
       step=jnp.zeros((), jnp.int32),

@@ -98,9 +98,10 @@ def check_row_overrides(cd: ml_collections.ConfigDict, rows: list[str],
     pinned = cd.sweep.row_overrides.get(row)
     if pinned is None:
       continue
+    pinned = pinned.to_dict()
     for key in sorted(keys):
       section, _, field = key.partition(".")
-      values = pinned.to_dict().get(section)
+      values = pinned.get(section)
       if not (isinstance(values, dict) and field in values):
         continue
       if values[field] != cd[section][field]:

@@ -24,6 +24,7 @@ from clipgs_jax import config as config_lib
 from clipgs_jax import gaussians
 from clipgs_jax import guidance
 from clipgs_jax import losses
+from clipgs_jax import optim
 from clipgs_jax import project
 from clipgs_jax import rasterize
 from clipgs_jax import residual
@@ -286,7 +287,7 @@ def step_stages(cfg: config_lib.Config, batch, params, alive, view: int,
   # without donation each call also faults in fresh output pages (Adam at
   # 262k rows: 194 ms against 30 ms on the 2-core box; BUILD_NOTES.md,
   # "Training").
-  tx = train.make_optimizer(cfg)
+  tx = optim.for_run(cfg)
 
   def adam(carry, grads):
     updates, opt_state = tx.update(grads, carry[1], carry[0])
