@@ -195,10 +195,9 @@ def _view_map_fn(cfg: config_lib.Config):
 
   def fn(params, alive, stats, scorer, view, cam, photo, degree):
     bg = jnp.asarray(cfg.train.background, jnp.float32)
-    image = rasterize.render(params, alive, cam, bg, cfg.render,
-                             degree).image
-    return map_sources.view_map(scorer, stats, view, image, photo,
-                                cfg.semantic)
+    out = rasterize.render(params, alive, cam, bg, cfg.render, degree)
+    return map_sources.view_map(scorer, stats, view, out.image, out.alpha,
+                                photo, cfg.semantic)
   return jax.jit(fn)
 
 

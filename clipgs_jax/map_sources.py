@@ -64,7 +64,8 @@ def residual_map(source: ResidualSource, stats: residual.ResidualState,
                  view: jax.Array, render: jax.Array, photo: jax.Array,
                  step: jax.Array, key: jax.Array,
                  sem: config_lib.SemanticConfig,
-                 valid: jax.Array | None = None) -> ResidualMap:
+                 valid: jax.Array | None = None,
+                 alpha: jax.Array | None = None) -> ResidualMap:
   """The transient map of training view `view` at `step`.
 
   Args:
@@ -79,6 +80,11 @@ def residual_map(source: ResidualSource, stats: residual.ResidualState,
     valid: None, or float [H, W] in {0, 1}, the photo's pixels on a larger
       canvas: the pixels outside are neither transient nor static (0 in
       both maps' masks; residual.counts leaves them out).
+    alpha: float [H, W], the render's alpha; needed when
+      sem.residual_min_alpha > 0 (a pixel is transient only where alpha
+      exceeds it).
+  Raises:
+    ValueError: sem.residual_min_alpha > 0 and no alpha.
   """
   res = residual.residual(render, photo)
   inlier = residual.inliers(res, stats.threshold, sem.residual_rule, valid)
@@ -90,6 +96,12 @@ def residual_map(source: ResidualSource, stats: residual.ResidualState,
   if source.semantic is not None:
     gate = (source.semantic[view] > SEMANTIC_GATE).astype(transient.dtype)
     transient, dropped = transient * gate, dropped * gate
+  if sem.residual_min_alpha > 0:
+    if alpha is None:
+      raise ValueError("residual_map: semantic.residual_min_alpha = "
+                       f"{sem.residual_min_alpha} needs the render's alpha.")
+    covered = (alpha > sem.residual_min_alpha).astype(transient.dtype)
+    transient, dropped = transient * covered, dropped * covered
   if valid is not None:
     transient, dropped = transient * valid, dropped * valid
   return ResidualMap(transient=transient, loss_weight=1.0 - dropped,
@@ -150,13 +162,14 @@ def oracle_patch_maps(masks, grid: int) -> jax.Array:
 
 
 def view_map(scorer, stats: residual.ResidualState | None, view: jax.Array,
-             render: jax.Array, photo: jax.Array,
+             render: jax.Array, alpha: jax.Array, photo: jax.Array,
              sem: config_lib.SemanticConfig) -> jax.Array:
   """float32 [H, W], the map m a training step on `view` would use now:
-  the residual map for a ResidualSource (from `render`, the view rendered
-  by the current model; m does not depend on the warm-up's sampling), else
-  the static map of a guidance.PixelMapScorer (`render` unread)."""
+  the residual map for a ResidualSource (from `render` and `alpha`, the
+  view rendered by the current model; m does not depend on the warm-up's
+  sampling), else the static map of a guidance.PixelMapScorer (`render`
+  unread)."""
   if isinstance(scorer, ResidualSource):
     return residual_map(scorer, stats, view, render, photo, jnp.int32(0),
-                        jax.random.key(0), sem).transient
+                        jax.random.key(0), sem, alpha=alpha).transient
   return scorer.score_map(view)

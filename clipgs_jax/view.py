@@ -159,7 +159,8 @@ def render_and_grad(state: state_lib.TrainState, scorer,
     if dynamic:
       rmap = map_sources.residual_map(scorer, state.maps, view, out.image,
                                       target, step, sample_key, sem,
-                                      valid=valid)
+                                      valid=valid,
+                                      alpha=jax.lax.stop_gradient(out.alpha))
       if sem.loss_masking:
         weight = rmap.loss_weight
     loss, terms = losses.photometric(out.image, target,

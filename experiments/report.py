@@ -6,6 +6,7 @@
   python experiments/report.py --report=renders --runs=DIR
   python experiments/report.py --report=masks --runs=DIR [--mask_tau=T]
   python experiments/report.py --report=evidence --runs=DIR
+  python experiments/report.py --report=loss_maps --runs=DIR [--views=3]
   python experiments/report.py --report=curve --runs=DIR1,DIR2
       --curve_png=curve.png [--labels=a,b] [--x_axis=seconds|step]
   python experiments/report.py --report=figures --runs=TABLE_ROOT
@@ -23,6 +24,11 @@ evidence: on a persistent benchmark, the ground-truth pixel evidence s_j
   of the Gaussians on billboards (ghosts, by geometry) against the rest,
   raw and agreement-weighted: DIR/evidence.json and DIR/evidence.png
   (clipgs_jax/lab/ghost_evidence.py).
+loss_maps: with pixel evidence, the map m the loss uses for every
+  training view with the final model, scored against the ground-truth
+  masks, and a picture of the worst views (lowest IoU; clean views masked
+  most): DIR/loss_maps.json and DIR/loss_maps.png (clipgs_jax/lab/
+  loss_maps.py).
 curve: test MSE (log) against training time of each run's curve.json (a
   run folder or the curve.json itself).
 figures: per benchmark, a render grid and error curves of the table's
@@ -37,13 +43,15 @@ from clipgs_jax import cli
 from clipgs_jax import evaluation
 from clipgs_jax.lab import ghost_evidence
 from clipgs_jax.lab import figures
+from clipgs_jax.lab import loss_maps
 from clipgs_jax import plots
 from clipgs_jax.lab import report
 from clipgs_jax import run as run_lib
 
 _REPORT = flags.DEFINE_enum(
     "report", None,
-    ["metrics", "renders", "masks", "evidence", "curve", "figures"],
+    ["metrics", "renders", "masks", "evidence", "loss_maps", "curve",
+     "figures"],
     "What to make of the runs.")
 _RUNS = flags.DEFINE_list("runs", None, "Run folders written by "
                           "experiments/train.py (figures: the table's root).")
@@ -66,7 +74,8 @@ _BENCHMARKS = flags.DEFINE_list("benchmarks", None,
 _FIGURES_DIR = flags.DEFINE_string("figures_dir", None,
                                    "figures: folder for the PNGs.")
 _VIEWS = flags.DEFINE_integer("views", 3, "figures: test views (grid rows) "
-                              "per benchmark.")
+                              "per benchmark; loss_maps: views per failure "
+                              "kind.")
 _FIGURE_DOWNSCALE = flags.DEFINE_integer(
     "figure_downscale", None, "figures: image downscale of the renders "
     "(default: the runs' run.json).")
@@ -134,6 +143,18 @@ def _evidence() -> None:
         f"{ghost_evidence.EVIDENCE_PNG} in {out['workdir']}")
 
 
+def _loss_maps() -> None:
+  cli.require(_VIEWS.value >= 1, "views", _VIEWS.value, "must be positive")
+  out = loss_maps.loss_map_report(_one_run(), _VIEWS.value)
+  pooled = out["pooled"]
+  print(f"masked {pooled['masked_fraction']:.3f} of the training pixels; "
+        + ", ".join(f"{k} {_fraction(pooled[k])}" for k in
+                    ("precision", "recall", "iou") if k in pooled))
+  for kind, names in out["worst"].items():
+    print(f"  {kind}: {', '.join(names) or '(none)'}")
+  print(f"wrote {out['json']}" + (f" and {out['png']}" if out["png"] else ""))
+
+
 def main(argv):
   cli.no_arguments(argv)
   what = _REPORT.value
@@ -145,6 +166,8 @@ def main(argv):
     _masks()
   elif what == "evidence":
     _evidence()
+  elif what == "loss_maps":
+    _loss_maps()
   elif what == "curve":
     cli.require(_CURVE_PNG.value is not None, "curve_png", None,
                 "is needed: pass the PNG to write")

@@ -182,6 +182,26 @@ class SourceTest(absltest.TestCase):
     np.testing.assert_array_equal(gated.transient[:, :8],
                                   plain.transient[:, :8])
 
+  def test_alpha_gate_keeps_transients_only_on_rendered_surface(self):
+    photo = jnp.zeros((16, 16, 3))
+    render = photo.at[4:12, 4:12].set(1.0)       # an 8x8 miss
+    stats = residual.ResidualState.initial().replace(
+        threshold=jnp.float32(0.5))
+    alpha = jnp.ones((16, 16)).at[:, 8:].set(0.3)  # no surface on the right
+    args = (map_sources.ResidualSource(), stats, jnp.int32(0), render, photo,
+            jnp.int32(5), jax.random.key(0))
+    plain = map_sources.residual_map(*args, self._sem(), alpha=alpha)
+    gated = map_sources.residual_map(
+        *args, self._sem(residual_min_alpha=0.5), alpha=alpha)
+    np.testing.assert_array_equal(gated.transient[:, :8],
+                                  plain.transient[:, :8])
+    np.testing.assert_array_equal(gated.transient[:, 8:], 0.0)
+    self.assertGreater(float(jnp.sum(plain.transient[:, 8:])), 0.0)
+    # The unmasked pixels are trained: the loss weight follows the map.
+    np.testing.assert_array_equal(gated.loss_weight, 1.0 - gated.transient)
+    with self.assertRaisesRegex(ValueError, "needs the render's alpha"):
+      map_sources.residual_map(*args, self._sem(residual_min_alpha=0.5))
+
   def test_oracle_patch_pools_to_the_grid(self):
     masks = np.zeros((2, 28, 42), bool)
     masks[0, :14, :21] = True         # one quadrant: 7 x 7 cells of 14 x 14

@@ -129,7 +129,8 @@ class SemanticCheckTest(parameterized.TestCase):
       ("evidence", "patch", "evidence="), ("tau_p", 1.5, "tau_p="),
       ("max_prune_fraction", 0.0, "max_prune_fraction="),
       ("loss_masking", True, "loss_masking needs evidence='pixel'"),
-      ("dense_input_size", 0, "dense_input_size="))
+      ("dense_input_size", 0, "dense_input_size="),
+      ("residual_min_alpha", 1.0, "residual_min_alpha="))
   def test_names_the_field(self, field, value, message):
     sem = dataclasses.replace(ORACLE, **{field: value})
     with self.assertRaisesRegex(app.UsageError, message):

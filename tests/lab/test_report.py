@@ -18,6 +18,8 @@ from clipgs_jax import config as config_lib
 from clipgs_jax import config_file
 from clipgs_jax import evaluation
 from clipgs_jax import fileio
+from clipgs_jax import guidance
+from clipgs_jax.lab import loss_maps
 from clipgs_jax.lab import report
 from clipgs_jax import run as run_lib
 from clipgs_jax import train
@@ -246,3 +248,76 @@ def test_cli_curve(tmp_path):
   assert proc.returncode == 2
   assert proc.stderr.strip().splitlines()[-1].startswith(
       "error: --runs=")
+
+
+def test_loss_map_scores_and_worst_views():
+  pred = np.array([[True, True], [False, False]])
+  truth = np.array([[True, False], [True, False]])
+  s = loss_maps.view_scores(pred, truth)
+  assert s == {"masked_fraction": 0.5, "transient_fraction": 0.5,
+               "precision": 0.5, "recall": 0.5, "iou": 1 / 3}
+  assert loss_maps.view_scores(pred, None) == {"masked_fraction": 0.5}
+  picture = loss_maps.error_picture(pred, truth)
+  np.testing.assert_array_equal(picture[0, 0], [0, 1, 0])   # hit
+  np.testing.assert_array_equal(picture[0, 1], [1, 0, 0])   # false
+  np.testing.assert_array_equal(picture[1, 0], [0, 0, 1])   # missed
+  scores = {
+      "good": {"masked_fraction": 0.1, "transient_fraction": 0.1,
+               "iou": 0.9},
+      "bad": {"masked_fraction": 0.3, "transient_fraction": 0.1, "iou": 0.2},
+      "empty": {"masked_fraction": 0.0, "transient_fraction": 0.1,
+                "iou": 0.0},
+      "clean_fp": {"masked_fraction": 0.2, "transient_fraction": 0.0,
+                   "iou": 0.0},
+      "clean_ok": {"masked_fraction": 0.0, "transient_fraction": 0.0,
+                   "iou": None}}
+  assert loss_maps.worst_views(scores, 2) == {
+      "lowest_iou": ["empty", "bad"], "clean_most_masked": ["clean_fp"]}
+
+
+@pytest.fixture(scope="module")
+def residual_run(tmp_path_factory):
+  """A residual-map run folder with its threshold set, without training."""
+  workdir = tmp_path_factory.mktemp("residual_run")
+  scene_path = default_scene.ensure_default_scene()
+  scene = scene_lib.load_scene(scene_path, downscale=DOWNSCALE)
+  smoke = config_file.named("smoke")
+  cfg = train.resolve(dataclasses.replace(smoke, semantic=dataclasses.replace(
+      smoke.semantic, scorer="residual", evidence="pixel", loss_masking=True,
+      residual_warmup=0.0)), scene)
+  state = train.initial_state(cfg, scene)
+  state = state.replace(maps=state.maps.replace(threshold=jnp.float32(0.1)))
+  checkpoint.save(str(workdir / train.CHECKPOINT_NAME), state, cfg, extra={})
+  fileio.write_json(str(workdir / "run.json"), {
+      "scene": os.path.abspath(scene_path), "embedded_scene": True,
+      "downscale": DOWNSCALE, "train_split": "clutter"})
+  fileio.write_json(str(workdir / "config.json"), config_lib.to_dict(cfg))
+  return workdir, scene, cfg, state
+
+
+def test_loss_map_report(residual_run):
+  workdir, scene, cfg, state = residual_run
+  proc = _report_cli("--report=loss_maps", f"--runs={workdir}", "--views=2")
+  assert proc.returncode == 0, proc.stderr
+  assert "precision" in proc.stdout, proc.stdout
+  with open(workdir / loss_maps.LOSS_MAPS_JSON) as f:
+    out = json.load(f)
+  assert sorted(out["per_view"]) == sorted(scene.train.names)
+  # The pooled numbers are the run's own mask quality (what metrics.json
+  # and the curve report), from the same maps.
+  degree = np.int32(state.params.sh_degree)
+  quality = evaluation.mask_quality(
+      state.params, state.alive, state.maps,
+      guidance.make_scorer(cfg.semantic, scene), scene.train, cfg, degree)
+  for key in ("precision", "recall", "iou"):
+    assert out["pooled"][key] == pytest.approx(quality[key])
+  for name in out["worst"]["clean_most_masked"]:
+    assert out["per_view"][name]["transient_fraction"] == 0.0
+  assert len(out["worst"]["lowest_iou"]) == 2
+  assert (workdir / loss_maps.LOSS_MAPS_PNG).stat().st_size > 1000
+
+
+def test_loss_map_report_needs_pixel_evidence(saved_run):
+  workdir, _, _ = saved_run
+  with pytest.raises(ValueError, match="no per-pixel map"):
+    loss_maps.loss_map_report(str(workdir))

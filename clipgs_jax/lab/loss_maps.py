@@ -1,0 +1,153 @@
+"""Where a run's transient maps fail: the maps the loss used, per view.
+
+For a finished pixel-evidence run (residual, features, ORACLE-PATCH, dense
+CLIP): the map m each training view's step would use with the final model
+(evaluation.view_map), scored against the ground-truth masks, and a figure
+of the worst views, photo | render | m | ground truth | errors, for the
+two ways a map fails: transient views where it misses or overreaches
+(lowest IoU) and views with no transient where it masks anyway (most
+masked pixels).
+"""
+
+import os
+
+import jax.numpy as jnp
+import numpy as np
+from matplotlib import figure
+
+from clipgs_jax import evaluation
+from clipgs_jax import fileio
+from clipgs_jax import guidance
+from clipgs_jax import plots
+from clipgs_jax import run as run_lib
+from clipgs_jax import sh
+from clipgs_jax.data import scene as scene_lib
+
+LOSS_MAPS_JSON = "loss_maps.json"
+LOSS_MAPS_PNG = "loss_maps.png"
+PANEL_INCHES = 2.0
+_SHORT = {"masked_fraction": "masked", "transient_fraction": "transient",
+          "precision": "P", "recall": "R", "iou": "IoU"}
+COLUMNS = ("photo", "render", "map m (loss weight 1 - m)", "ground truth",
+           "m > 0.5: hit green, false red, missed blue")
+
+
+def error_picture(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
+  """float32 [h, w, 3]: true positives green, false positives red, false
+  negatives blue, the rest black."""
+  out = np.zeros(pred.shape + (3,), np.float32)
+  out[pred & truth, 1] = 1.0
+  out[pred & ~truth, 0] = 1.0
+  out[~pred & truth, 2] = 1.0
+  return out
+
+
+def view_scores(pred: np.ndarray, truth: np.ndarray | None) -> dict:
+  """The masked fraction of one view's thresholded map and, with a ground
+  truth, its precision, recall and IoU (None where undefined)."""
+  out = {"masked_fraction": float(pred.mean())}
+  if truth is None:
+    return out
+  tp = np.count_nonzero(pred & truth)
+  fp = np.count_nonzero(pred & ~truth)
+  fn = np.count_nonzero(~pred & truth)
+  ratio = lambda a, b: None if b == 0 else a / b
+  return out | {"transient_fraction": float(truth.mean()),
+                "precision": ratio(tp, tp + fp), "recall": ratio(tp, tp + fn),
+                "iou": ratio(tp, tp + fp + fn)}
+
+
+def worst_views(scores: dict[str, dict], count: int) -> dict[str, list[str]]:
+  """The `count` transient views of lowest IoU (a missing IoU, nothing
+  masked and nothing to mask, never counts) and the `count` views without
+  a transient pixel that the map masks most."""
+  with_gt = [n for n, s in scores.items() if s.get("transient_fraction")]
+  clean = [n for n, s in scores.items()
+           if "transient_fraction" in s and not s["transient_fraction"]]
+  low_iou = sorted(with_gt, key=lambda n: scores[n]["iou"] or 0.0)
+  masked_clean = sorted(clean, key=lambda n: -scores[n]["masked_fraction"])
+  return {"lowest_iou": low_iou[:count],
+          "clean_most_masked": [n for n in masked_clean[:count]
+                                if scores[n]["masked_fraction"] > 0]}
+
+
+def loss_map_report(workdir: str, count: int = 3) -> dict:
+  """Writes LOSS_MAPS_JSON and LOSS_MAPS_PNG into a finished run folder.
+
+  Args:
+    workdir: a run folder of experiments/train.py with pixel evidence.
+    count: views drawn per failure kind.
+  Returns:
+    {"json", "png", "pooled" (masked fraction and, with masks, P / R /
+    IoU over all training views), "worst" (worst_views)}.
+  Raises:
+    ValueError: the run has no per-pixel map (semantic.evidence != pixel).
+  """
+  _, cfg, scene, state = run_lib.load_state(workdir)
+  if not cfg.semantic.localized:
+    raise ValueError(
+        f"{workdir} was trained with semantic.scorer={cfg.semantic.scorer!r}"
+        f", evidence={cfg.semantic.evidence!r}: it has no per-pixel map; "
+        "pass a run with semantic.evidence=pixel.")
+  views = scene.train
+  scorer = guidance.make_scorer(cfg.semantic, scene)
+  degree = sh.active_degree(state.step, cfg.densify.sh_degree_every,
+                            cfg.gaussians.sh_degree)
+  colours = [np.asarray(c) for c, _, _ in
+             evaluation.renders(state.params, state.alive, views, cfg)]
+  maps, scores = {}, {}
+  for i, name in enumerate(views.names):
+    m = scene_lib.crop(views, i, evaluation.view_map(
+        state.params, state.alive, state.maps, scorer, views, i, cfg,
+        degree))
+    truth = (None if views.masks is None else
+             scene_lib.crop(views, i, np.asarray(views.masks[i], bool)))
+    maps[name] = m
+    scores[name] = view_scores(m > evaluation.MAP_THRESHOLD, truth)
+  pooled = {"masked_fraction": float(np.mean(
+      [s["masked_fraction"] for s in scores.values()]))}
+  if views.masks is not None:
+    pooled |= {k: v for k, v in evaluation.mask_quality(
+        state.params, state.alive, state.maps, scorer, views, cfg,
+        degree).items() if k in ("precision", "recall", "iou")}
+  worst = (worst_views(scores, count) if views.masks is not None else
+           {"most_masked": sorted(scores, key=lambda n: -scores[n][
+               "masked_fraction"])[:count]})
+  picked = [(kind, n) for kind, names in worst.items() for n in names]
+  png = os.path.join(workdir, LOSS_MAPS_PNG)
+  if picked:
+    index = {n: i for i, n in enumerate(views.names)}
+    h, w = maps[picked[0][1]].shape
+    fig = figure.Figure(dpi=150, figsize=(
+        PANEL_INCHES * len(COLUMNS),
+        (PANEL_INCHES * h / w + 0.5) * len(picked)))
+    axes = fig.subplots(len(picked), len(COLUMNS), squeeze=False)
+    for k, (kind, name) in enumerate(picked):
+      i = index[name]
+      m = maps[name]
+      photo = scene_lib.crop(views, i, views.images[i])
+      truth = (np.zeros(m.shape, bool) if views.masks is None else
+               scene_lib.crop(views, i, np.asarray(views.masks[i], bool)))
+      s = scores[name]
+      panels = (photo, colours[i], np.repeat(m[..., None], 3, -1),
+                np.repeat(truth[..., None].astype(np.float32), 3, -1),
+                error_picture(m > evaluation.MAP_THRESHOLD, truth))
+      for c, image in enumerate(panels):
+        ax = axes[k, c]
+        ax.imshow(np.clip(image, 0, 1), interpolation="nearest")
+        ax.set_xticks([])
+        ax.set_yticks([])
+        if k == 0:
+          ax.set_title(COLUMNS[c], fontsize=6)
+      axes[k, 0].set_ylabel(f"{name}\n{kind}", fontsize=6)
+      axes[k, -1].set_xlabel(", ".join(
+          f"{_SHORT[key]} {'n/a' if v is None else f'{v:.2f}'}"
+          for key, v in s.items()), fontsize=6)
+    plots.save_figure(fig, png)
+  out = {"run": os.path.abspath(workdir), "step": int(state.step),
+         "map_threshold": evaluation.MAP_THRESHOLD, "pooled": pooled,
+         "worst": worst, "per_view": scores}
+  path = os.path.join(workdir, LOSS_MAPS_JSON)
+  fileio.write_json(path, out)
+  return {"json": path, "png": png if picked else None, "pooled": pooled,
+          "worst": worst}
