@@ -140,7 +140,7 @@ def loss_map_report(workdir: str, count: int = 3) -> dict:
         if k == 0:
           ax.set_title(COLUMNS[c], fontsize=6)
       axes[k, 0].set_ylabel(f"{name}\n{kind}", fontsize=6)
-      axes[k, -1].set_xlabel(", ".join(
+      axes[k, 2].set_xlabel(", ".join(
           f"{_SHORT[key]} {'n/a' if v is None else f'{v:.2f}'}"
           for key, v in s.items()), fontsize=6)
     plots.save_figure(fig, png)
