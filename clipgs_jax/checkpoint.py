@@ -129,13 +129,13 @@ def _meta(data, path) -> dict[str, Any]:
           "version": int(data["meta/version"])}
 
 
-def _differences(a: dict, b: dict, prefix: str = "") -> list[str]:
+def config_differences(a: dict, b: dict, prefix: str = "") -> list[str]:
   """'field: a -> b' for every leaf where two nested dicts differ."""
   out = []
   for k in sorted(set(a) | set(b)):
     x, y = a.get(k), b.get(k)
     if isinstance(x, dict) and isinstance(y, dict):
-      out += _differences(x, y, f"{prefix}{k}.")
+      out += config_differences(x, y, f"{prefix}{k}.")
     elif x != y:
       out.append(f"{prefix}{k}: {x} -> {y}")
   return out
@@ -151,7 +151,7 @@ def check_resumable(path: str, cfg: config_lib.Config) -> None:
   saved = json.loads(json.dumps(meta["config"]))
   wanted = json.loads(json.dumps(config_lib.to_dict(cfg)))
   if saved != wanted:
-    diff = _differences(saved, wanted)
+    diff = config_differences(saved, wanted)
     more = f" and {len(diff) - 3} more" if len(diff) > 3 else ""
     raise CheckpointError(
         f"{path} was written with a different config ({'; '.join(diff[:3])}"

@@ -4,7 +4,8 @@ Each row is the base config plus the row's overrides, run in this process
 (run.train_and_evaluate) into workdir/<benchmark>/<row>/ and collected into
 a table (kinds: table, ablate, tau_sweep) or a side-by-side comparison
 (demo). Rows resume, and a row whose metrics.json has its train.steps is
-skipped.
+skipped when its config.json is the row's config (else the row fails: a
+finished run of another seed or setting is never reported as this one).
 """
 
 import json
@@ -16,6 +17,7 @@ from absl import logging
 import ml_collections
 import numpy as np
 
+from clipgs_jax import checkpoint
 from clipgs_jax import cli
 from clipgs_jax import config as config_lib
 from clipgs_jax import config_file
@@ -50,16 +52,42 @@ def _finished(workdir: str, steps: int) -> dict | None:
   return metrics if metrics.get("steps") == steps else None
 
 
+def config_changes(workdir: str, cfg: config_lib.Config) -> list[str]:
+  """'field: stored -> wanted' for each field where the run in `workdir`
+  (its config.json) differs from `cfg`; scene_extent, which the run
+  resolves from its scene, counts only when `cfg` sets it."""
+  path = os.path.join(workdir, run_lib.CONFIG_JSON)
+  try:
+    with open(path) as f:
+      stored = config_file.from_dict(json.load(f))
+  except (OSError, ValueError) as e:
+    return [f"{path} is unreadable ({e})"]
+  saved, wanted = config_lib.to_dict(stored), config_lib.to_dict(cfg)
+  if not cfg.scene_extent > 0:
+    saved.pop("scene_extent"), wanted.pop("scene_extent")
+  saved, wanted = (json.loads(json.dumps(d)) for d in (saved, wanted))
+  return checkpoint.config_differences(saved, wanted)
+
+
 def run_row(cfg: config_lib.Config, workdir: str, *,
             clip_weights: str | None, run_info: dict[str, Any]
             ) -> tuple[dict | None, str | None]:
-  """Runs (or skips, when finished) one row; a user error fails the row.
+  """Runs (or skips, when finished with the same config) one row; a user
+  error, or a finished run of another config in its folder, fails the row.
 
   Returns:
     (metrics dict or None, error line or None).
   """
   metrics = _finished(workdir, cfg.train.steps)
   if metrics is not None:
+    changes = config_changes(workdir, cfg)
+    if changes:
+      more = f" and {len(changes) - 3} more" if len(changes) > 3 else ""
+      line = (f"{workdir} holds a finished run of another config "
+              f"({'; '.join(changes[:3])}{more}); pass a new --workdir, or "
+              "delete the folder to run it again")
+      logging.error("row %s failed: %s", workdir, line)
+      return None, line
     logging.info("skip %s: metrics.json already has %d steps", workdir,
                  cfg.train.steps)
     return metrics, None

@@ -221,6 +221,20 @@ class EndToEndTest(absltest.TestCase):
     train.assert_not_called()
     self.assertEqual([r["psnr"] for r in again["rows"]],
                      [r["psnr"] for r in rows])
+    # Another seed into the same folders: the finished runs are not
+    # reported as its rows (they used to be, silently), nor overwritten.
+    cd = self._cd(scene)
+    cd.train.seed = 1
+    with mock.patch.object(run_lib, "train_and_evaluate") as train, \
+        self.assertRaisesRegex(ValueError, "failed"):
+      sweep.run(cd, root)
+    train.assert_not_called()
+    with open(os.path.join(root, "table.json")) as f:
+      other = json.load(f)
+    for r in other["rows"]:
+      self.assertNotEqual(r["status"], "ok", r)
+      self.assertIn("holds a finished run of another config (train.seed: "
+                    "0 -> 1)", r["error"])
 
   def test_demo_writes_the_comparison(self):
     cd = config_file.load_file(os.path.join(config_file.CONFIGS_DIR, "demo.py"))
