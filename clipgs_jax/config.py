@@ -182,10 +182,11 @@ class SemanticConfig:
   #   colour error (0: none). Relative floors stay at the fit's own error
   #   level, so a clean view stays masked where the fit lags; an absolute
   #   one lets a clean view's map shrink as the fit improves (BUILD_NOTES)
-  residual_min_alpha: float = 0.0  # a pixel is transient only where the
+  residual_min_alpha: float = 0.9  # a pixel is transient only where the
   #   render's alpha exceeds this (0: everywhere). A transient hides a
   #   surface other views reconstruct; where the model has none, a high
   #   residual is static scene not yet fit, and masking it keeps it unfit
+  #   (BUILD_NOTES.md, "Transient masks without an oracle")
   features: str = ""           # residual map: "" per pixel, or "alex" /
   #   "vgg": each photo's ImageNet-feature regions (features.py) take the
   #   majority verdict of the residual test inside them

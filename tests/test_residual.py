@@ -158,6 +158,7 @@ class WarmupTest(absltest.TestCase):
 class SourceTest(absltest.TestCase):
 
   def _sem(self, **kw):
+    kw = {"residual_min_alpha": 0.0, **kw}   # no render alpha here
     return dataclasses.replace(config.SemanticConfig(), scorer="residual",
                                evidence="pixel", residual_warmup=0.0, **kw)
 

@@ -224,8 +224,9 @@ def test_residual_transient_map(guided_run):
   """A residual-map run shows the residual test of its final model's render
   at the threshold it ended with, as its whole-scene scorer gives it."""
   run = viewed_run.load(guided_run)
+  # Without the alpha gate, so that a zero threshold masks every pixel.
   cfg = dataclasses.replace(run.cfg, semantic=dataclasses.replace(
-      run.cfg.semantic, scorer="residual"))
+      run.cfg.semantic, scorer="residual", residual_min_alpha=0.0))
   scene = viewed_run.load_scene(run)
   index = 1
   photo = scene.train.images[index]
