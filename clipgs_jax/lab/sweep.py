@@ -55,16 +55,20 @@ def _finished(workdir: str, steps: int) -> dict | None:
 def config_changes(workdir: str, cfg: config_lib.Config) -> list[str]:
   """'field: stored -> wanted' for each field where the run in `workdir`
   (its config.json) differs from `cfg`; scene_extent, which the run
-  resolves from its scene, counts only when `cfg` sets it."""
+  resolves from its scene, counts only when `cfg` sets it. A field the
+  stored config lacks (written before the field existed) differs: that
+  run did not have it, whatever its default is now."""
   path = os.path.join(workdir, run_lib.CONFIG_JSON)
   try:
     with open(path) as f:
-      stored = config_file.from_dict(json.load(f))
+      saved = json.load(f)
   except (OSError, ValueError) as e:
     return [f"{path} is unreadable ({e})"]
-  saved, wanted = config_lib.to_dict(stored), config_lib.to_dict(cfg)
+  if not isinstance(saved, dict):
+    return [f"{path} is not a config"]
+  wanted = config_lib.to_dict(cfg)
   if not cfg.scene_extent > 0:
-    saved.pop("scene_extent"), wanted.pop("scene_extent")
+    saved.pop("scene_extent", None), wanted.pop("scene_extent")
   saved, wanted = (json.loads(json.dumps(d)) for d in (saved, wanted))
   return checkpoint.config_differences(saved, wanted)
 

@@ -11,6 +11,7 @@ from absl.testing import absltest
 
 from clipgs_jax import config
 from clipgs_jax import config_file
+from clipgs_jax import fileio
 from clipgs_jax import run as run_lib
 from clipgs_jax.lab import sweep
 from clipgs_jax.lab import table
@@ -178,6 +179,30 @@ class FormatTest(absltest.TestCase):
                if row in residual_rows else bench.train)
       self.assertEqual(cfg.train, train)
       self.assertEqual(cfg.semantic.prune_start, sem.prune_start)
+
+
+class ConfigChangesTest(absltest.TestCase):
+
+  def test_names_what_differs(self):
+    folder = self.create_tempdir().full_path
+    cfg = config_file.named("smoke")
+    stored = config.to_dict(dataclasses.replace(cfg, scene_extent=2.5))
+    path = os.path.join(folder, "config.json")
+    fileio.write_json(path, stored)
+    # The run resolved scene_extent from its scene: not a difference.
+    self.assertEqual(sweep.config_changes(folder, cfg), [])
+    self.assertEqual(sweep.config_changes(folder, dataclasses.replace(
+        cfg, train=dataclasses.replace(cfg.train, seed=7))),
+                     [f"train.seed: {cfg.train.seed} -> 7"])
+    # A field the run's config lacks: the run did not have it.
+    del stored["semantic"]["residual_min_alpha"]
+    fileio.write_json(path, stored)
+    self.assertEqual(sweep.config_changes(folder, cfg), [
+        "semantic.residual_min_alpha: None -> "
+        f"{cfg.semantic.residual_min_alpha}"])
+    with open(path, "w") as f:
+      f.write("[1, 2]")
+    self.assertIn("is not a config", sweep.config_changes(folder, cfg)[0])
 
 
 class EndToEndTest(absltest.TestCase):
