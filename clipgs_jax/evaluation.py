@@ -241,23 +241,24 @@ def mask_quality(params: gaussians.GaussianParams, alive, stats, scorer,
   per_view = {}
   for i, name in enumerate(views.names):
     m = view_map(params, alive, stats, scorer, views, i, cfg, degree)
-    counts = _confusion(scene_lib.crop(views, i, m) > MAP_THRESHOLD,
+    counts = confusion(scene_lib.crop(views, i, m) > MAP_THRESHOLD,
                         scene_lib.crop(views, i, np.asarray(views.masks[i],
                                                             bool)))
     totals += counts
-    per_view[name] = _scores(counts)
-  return _scores(totals) | {"per_view": per_view,
+    per_view[name] = confusion_scores(counts)
+  return confusion_scores(totals) | {"per_view": per_view,
                             "map_threshold": MAP_THRESHOLD}
 
 
-def _confusion(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
+def confusion(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
   """int64 [3]: true positives, false positives, false negatives."""
   return np.array([np.count_nonzero(pred & truth),
                    np.count_nonzero(pred & ~truth),
                    np.count_nonzero(~pred & truth)], np.int64)
 
 
-def _scores(counts) -> dict[str, float | None]:
+def confusion_scores(counts) -> dict[str, float | None]:
+  """precision, recall and IoU of confusion counts (None where undefined)."""
   tp, fp, fn = (int(c) for c in counts)
   ratio = lambda a, b: a / b if b else None
   return {"precision": ratio(tp, tp + fp), "recall": ratio(tp, tp + fn),

@@ -11,7 +11,6 @@ masked pixels).
 
 import os
 
-import jax.numpy as jnp
 import numpy as np
 from matplotlib import figure
 
@@ -48,13 +47,8 @@ def view_scores(pred: np.ndarray, truth: np.ndarray | None) -> dict:
   out = {"masked_fraction": float(pred.mean())}
   if truth is None:
     return out
-  tp = np.count_nonzero(pred & truth)
-  fp = np.count_nonzero(pred & ~truth)
-  fn = np.count_nonzero(~pred & truth)
-  ratio = lambda a, b: None if b == 0 else a / b
-  return out | {"transient_fraction": float(truth.mean()),
-                "precision": ratio(tp, tp + fp), "recall": ratio(tp, tp + fn),
-                "iou": ratio(tp, tp + fp + fn)}
+  return out | {"transient_fraction": float(truth.mean())} | (
+      evaluation.confusion_scores(evaluation.confusion(pred, truth)))
 
 
 def worst_views(scores: dict[str, dict], count: int) -> dict[str, list[str]]:
@@ -93,23 +87,24 @@ def loss_map_report(workdir: str, count: int = 3) -> dict:
   scorer = guidance.make_scorer(cfg.semantic, scene)
   degree = sh.active_degree(state.step, cfg.densify.sh_degree_every,
                             cfg.gaussians.sh_degree)
-  colours = [np.asarray(c) for c, _, _ in
-             evaluation.renders(state.params, state.alive, views, cfg)]
-  maps, scores = {}, {}
+  maps, truths, scores = {}, {}, {}
+  totals = np.zeros(3, np.int64)
   for i, name in enumerate(views.names):
     m = scene_lib.crop(views, i, evaluation.view_map(
         state.params, state.alive, state.maps, scorer, views, i, cfg,
         degree))
+    pred = m > evaluation.MAP_THRESHOLD
     truth = (None if views.masks is None else
              scene_lib.crop(views, i, np.asarray(views.masks[i], bool)))
-    maps[name] = m
-    scores[name] = view_scores(m > evaluation.MAP_THRESHOLD, truth)
+    if truth is not None:
+      totals += evaluation.confusion(pred, truth)
+    maps[name], truths[name] = m, truth
+    scores[name] = view_scores(pred, truth)
+  # Pixels pooled over all views, as evaluation.mask_quality pools them.
   pooled = {"masked_fraction": float(np.mean(
       [s["masked_fraction"] for s in scores.values()]))}
   if views.masks is not None:
-    pooled |= {k: v for k, v in evaluation.mask_quality(
-        state.params, state.alive, state.maps, scorer, views, cfg,
-        degree).items() if k in ("precision", "recall", "iou")}
+    pooled |= evaluation.confusion_scores(totals)
   worst = (worst_views(scores, count) if views.masks is not None else
            {"most_masked": sorted(scores, key=lambda n: -scores[n][
                "masked_fraction"])[:count]})
@@ -117,6 +112,10 @@ def loss_map_report(workdir: str, count: int = 3) -> dict:
   png = os.path.join(workdir, LOSS_MAPS_PNG)
   if picked:
     index = {n: i for i, n in enumerate(views.names)}
+    # Colour renders of the drawn views only.
+    drawn = scene_lib.subset(views, [index[n] for _, n in picked])
+    colours = [np.asarray(c) for c, _, _ in
+               evaluation.renders(state.params, state.alive, drawn, cfg)]
     h, w = maps[picked[0][1]].shape
     fig = figure.Figure(dpi=150, figsize=(
         PANEL_INCHES * len(COLUMNS),
@@ -126,10 +125,10 @@ def loss_map_report(workdir: str, count: int = 3) -> dict:
       i = index[name]
       m = maps[name]
       photo = scene_lib.crop(views, i, views.images[i])
-      truth = (np.zeros(m.shape, bool) if views.masks is None else
-               scene_lib.crop(views, i, np.asarray(views.masks[i], bool)))
+      truth = (np.zeros(m.shape, bool) if truths[name] is None
+               else truths[name])
       s = scores[name]
-      panels = (photo, colours[i], np.repeat(m[..., None], 3, -1),
+      panels = (photo, colours[k], np.repeat(m[..., None], 3, -1),
                 np.repeat(truth[..., None].astype(np.float32), 3, -1),
                 error_picture(m > evaluation.MAP_THRESHOLD, truth))
       for c, image in enumerate(panels):
