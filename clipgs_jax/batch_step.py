@@ -37,7 +37,6 @@ from clipgs_jax import guidance
 from clipgs_jax import metrics as metrics_lib
 from clipgs_jax import optim
 from clipgs_jax import residual as residual_lib
-from clipgs_jax import semantic as semantic_lib
 from clipgs_jax import sh
 from clipgs_jax import sharding
 from clipgs_jax import state as state_lib
@@ -47,48 +46,6 @@ from clipgs_jax import view as view_lib
 # per-step keys (guidance.per_step_keys) are kept per view.
 _MEAN_KEYS = ("loss", "l1", "ssim", "psnr", "semantic_loss",
               "agreement_share")
-
-
-def _masked_mean(x: jax.Array, valid: jax.Array | None) -> jax.Array:
-  if valid is None:
-    return jnp.mean(x)
-  return jnp.sum(x * valid) / jnp.maximum(jnp.sum(valid), 1.0)
-
-
-def _evidence(vp: view_lib.ViewPass, scorer, *, pos, step, cam, bg, target,
-              valid, cfg: config_lib.Config):
-  """One view's semantic increment (SemanticStats) and per-view metrics,
-  as train.train_step accumulates them for its one view."""
-  sem = cfg.semantic
-  zero = state_lib.SemanticStats.zeros(vp.proj.depths.shape[0])
-  out = vp.out
-  due = guidance.scores_due(step, sem)
-  if sem.uses_residual:
-    transient = vp.rmap.transient
-    inc = semantic_lib.accumulate_pixel(zero, vp.probe_grad,
-                                        out.contribution, out.visible, due)
-    agree = semantic_lib.agreement(jax.lax.stop_gradient(out.image), target)
-    return inc, dict(
-        map_mean=_masked_mean(transient, valid), scored=due,
-        agreement_share=jnp.sum(transient * agree)
-        / jnp.maximum(jnp.sum(transient), 1.0))
-  if sem.localized:
-    evidence, weight = out.evidence, out.contribution
-    if sem.agreement:
-      # The static map is 0 outside a canvas's photo, so the second pass's
-      # sums leave those pixels out.
-      reproduced = view_lib.reproduced_evidence(
-          due, vp.proj, cam, bg, cfg, vp.evidence_map, out.image, target)
-      weight = semantic_lib.agreement_weight(weight, evidence, reproduced)
-      evidence = reproduced
-    inc = semantic_lib.accumulate_pixel(zero, evidence, weight, out.visible,
-                                        due)
-    return inc, dict(map_mean=_masked_mean(vp.evidence_map, valid),
-                     scored=due)
-  weight = None if sem.weighting == "visibility" else out.contribution
-  inc, scores = guidance.score_and_accumulate(
-      zero, out.image, out.visible, weight, pos, step, scorer, sem)
-  return inc, scores
 
 
 def _combine(a, b):
@@ -157,9 +114,9 @@ def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
                "view": lane + pos * batch}
     evidence, hist = None, None
     if scorer is not None:
-      evidence, extra = _evidence(vp, view_scorer, pos=pos, step=step,
-                                  cam=cam, bg=bg, target=target,
-                                  valid=valid, cfg=cfg)
+      evidence, extra = view_lib.semantic_increment(
+          vp, view_scorer, view=pos, step=step, cam=cam, bg=bg,
+          target=target, cfg=cfg, valid=valid)
       metrics.update(extra, semantic_loss=vp.terms["semantic_loss"])
       if vp.rmap is not None:
         hist = residual_lib.counts(vp.rmap.residual, valid)

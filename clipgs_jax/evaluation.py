@@ -239,15 +239,26 @@ def mask_quality(params: gaussians.GaussianParams, alive, stats, scorer,
     return None
   totals = np.zeros(3, np.int64)
   per_view = {}
-  for i, name in enumerate(views.names):
-    m = view_map(params, alive, stats, scorer, views, i, cfg, degree)
-    counts = confusion(scene_lib.crop(views, i, m) > MAP_THRESHOLD,
-                        scene_lib.crop(views, i, np.asarray(views.masks[i],
-                                                            bool)))
+  for name, m, truth in training_maps(params, alive, stats, scorer, views,
+                                      cfg, degree):
+    counts = confusion(m > MAP_THRESHOLD, truth)
     totals += counts
     per_view[name] = confusion_scores(counts)
   return confusion_scores(totals) | {"per_view": per_view,
                             "map_threshold": MAP_THRESHOLD}
+
+
+def training_maps(params: gaussians.GaussianParams, alive, stats, scorer,
+                  views, cfg: config_lib.Config, degree):
+  """Yields (name, map, truth) for every training view in order: view_map
+  cropped to the view's photo, and its ground-truth mask (bool, cropped),
+  or None when the views have no masks (mask_quality's arguments)."""
+  for i, name in enumerate(views.names):
+    m = scene_lib.crop(views, i, view_map(params, alive, stats, scorer,
+                                          views, i, cfg, degree))
+    truth = (None if views.masks is None else
+             scene_lib.crop(views, i, np.asarray(views.masks[i], bool)))
+    yield name, m, truth
 
 
 def confusion(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:

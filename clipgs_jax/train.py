@@ -22,7 +22,6 @@ from clipgs_jax import loop
 from clipgs_jax import metrics as metrics_lib
 from clipgs_jax import optim
 from clipgs_jax import residual as residual_lib
-from clipgs_jax import semantic as semantic_lib
 from clipgs_jax import sh
 from clipgs_jax import sharding
 from clipgs_jax import state as state_lib
@@ -114,21 +113,18 @@ def train_step(state: state_lib.TrainState, batch: Batch, scorer=None, *,
   bg = view_lib.background(state.key, step, cfg)
   degree = sh.active_degree(step, cfg.densify.sh_degree_every,
                            cfg.gaussians.sh_degree)
-  sem = cfg.semantic
-  localized = scorer is not None and sem.localized
-  dynamic = scorer is not None and sem.uses_residual
-  (loss, out, proj, terms, rmap, grads, grad2d, probe_grad,
-   evidence_map) = view_lib.render_and_grad(
-       state, scorer, cfg, view=view, cam=cam, target=target, bg=bg,
-       degree=degree, key=state.key)
-  params, opt_state, grad_norms = optim.apply(state, grads, cfg)
+  vp = view_lib.render_and_grad(
+      state, scorer, cfg, view=view, cam=cam, target=target, bg=bg,
+      degree=degree, key=state.key)
+  params, opt_state, grad_norms = optim.apply(state, vp.grads, cfg)
 
-  proj = jax.lax.stop_gradient(proj)
+  out = vp.out
+  proj = jax.lax.stop_gradient(vp.proj)
   seen = densify.on_screen(proj, width, height) & state.alive
-  stats = densify.accumulate(state.densify, grad2d, seen,
+  stats = densify.accumulate(state.densify, vp.grad2d, seen,
                              densify.screen_radius(proj), width, height)
   metrics = {
-      "loss": loss, "l1": terms["l1"], "ssim": terms["ssim"],
+      "loss": vp.loss, "l1": vp.terms["l1"], "ssim": vp.terms["ssim"],
       "psnr": metrics_lib.psnr(out.image, target),
       "num_alive": jnp.sum(state.alive, dtype=jnp.int32),
       "num_overflow": out.num_overflow,
@@ -138,40 +134,17 @@ def train_step(state: state_lib.TrainState, batch: Batch, scorer=None, *,
                                  cfg.train.steps),
   }
   metrics.update(grad_norms)
-  semantic_stats = state.semantic
-  maps = state.maps
-  if dynamic:
-    maps = view_lib.update_maps(maps, sem, res=rmap.residual)
-    due = guidance.scores_due(step, sem)
-    semantic_stats = semantic_lib.accumulate_pixel(
-        state.semantic, probe_grad, out.contribution, out.visible, due)
-    metrics["semantic_loss"] = terms["semantic_loss"]
-    metrics.update(
-        map_mean=jnp.mean(rmap.transient), view=view, scored=due,
-        residual_threshold=state.maps.threshold,
-        # The share of the map that the agreement rule would keep.
-        agreement_share=jnp.sum(rmap.transient * semantic_lib.agreement(
-            jax.lax.stop_gradient(out.image), target))
-        / jnp.maximum(jnp.sum(rmap.transient), 1.0))
-  elif localized:
-    metrics["semantic_loss"] = terms["semantic_loss"]
-    due = guidance.scores_due(step, sem)
-    evidence, weight = out.evidence, out.contribution
-    if sem.agreement:
-      reproduced = view_lib.reproduced_evidence(
-          due, proj, cam, bg, cfg, evidence_map, out.image, target)
-      weight = semantic_lib.agreement_weight(weight, evidence, reproduced)
-      evidence = reproduced
-    semantic_stats = semantic_lib.accumulate_pixel(
-        state.semantic, evidence, weight, out.visible, due)
-    metrics.update(map_mean=jnp.mean(evidence_map), view=view, scored=due)
-  elif scorer is not None:
-    metrics["semantic_loss"] = terms["semantic_loss"]
-    weight = None if sem.weighting == "visibility" else out.contribution
-    semantic_stats, scores = guidance.score_and_accumulate(
-        state.semantic, out.image, out.visible, weight, view, step, scorer,
-        sem)
-    metrics.update(scores, view=view)
+  semantic_stats, maps = state.semantic, state.maps
+  if scorer is not None:
+    increment, extra = view_lib.semantic_increment(
+        vp, scorer, view=view, step=step, cam=cam, bg=bg, target=target,
+        cfg=cfg)
+    semantic_stats = jax.tree.map(jnp.add, state.semantic, increment)
+    metrics.update(extra, view=view,
+                   semantic_loss=vp.terms["semantic_loss"])
+  if vp.rmap is not None:
+    maps = view_lib.update_maps(maps, cfg.semantic, res=vp.rmap.residual)
+    metrics["residual_threshold"] = state.maps.threshold
   new_state = state.replace(params=params, opt_state=opt_state,
                             densify=stats, semantic=semantic_stats,
                             step=step + 1, maps=maps)

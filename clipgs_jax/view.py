@@ -209,6 +209,59 @@ def reproduced_evidence(due, proj, cam, bg, cfg, evidence_map, image,
       lambda: jnp.zeros_like(proj.depths))
 
 
+def _masked_mean(x: jax.Array, valid: jax.Array | None) -> jax.Array:
+  if valid is None:
+    return jnp.mean(x)
+  return jnp.sum(x * valid) / jnp.maximum(jnp.sum(valid), 1.0)
+
+
+def semantic_increment(vp: ViewPass, scorer, *, view: jax.Array,
+                       step: jax.Array, cam: camera_lib.Camera,
+                       bg: jax.Array, target: jax.Array,
+                       cfg: config_lib.Config,
+                       valid: jax.Array | None = None
+                       ) -> tuple[state_lib.SemanticStats,
+                                  dict[str, jax.Array]]:
+  """One view's semantic evidence and its per-view metrics.
+
+  Returns the SemanticStats increment (zero when the step does not
+  score), which train.train_step adds to the run's stats and batch_step
+  sums over its views first, and the metrics: map_mean (the map's mean
+  over `valid`) and scored, with the residual map the share of it that
+  the agreement rule would keep, with the image-level rule the scores.
+  """
+  sem = cfg.semantic
+  zero = state_lib.SemanticStats.zeros(vp.proj.depths.shape[0])
+  out = vp.out
+  due = guidance.scores_due(step, sem)
+  if sem.uses_residual:
+    # The map's per-Gaussian sums are the probe's gradient.
+    transient = vp.rmap.transient
+    inc = semantic_lib.accumulate_pixel(zero, vp.probe_grad,
+                                        out.contribution, out.visible, due)
+    agree = semantic_lib.agreement(jax.lax.stop_gradient(out.image), target)
+    return inc, dict(
+        map_mean=_masked_mean(transient, valid), scored=due,
+        agreement_share=jnp.sum(transient * agree)
+        / jnp.maximum(jnp.sum(transient), 1.0))
+  if sem.localized:
+    evidence, weight = out.evidence, out.contribution
+    if sem.agreement:
+      # The static map is 0 outside a canvas's photo, so the second pass's
+      # sums leave those pixels out.
+      reproduced = reproduced_evidence(
+          due, vp.proj, cam, bg, cfg, vp.evidence_map, out.image, target)
+      weight = semantic_lib.agreement_weight(weight, evidence, reproduced)
+      evidence = reproduced
+    inc = semantic_lib.accumulate_pixel(zero, evidence, weight, out.visible,
+                                        due)
+    return inc, dict(map_mean=_masked_mean(vp.evidence_map, valid),
+                     scored=due)
+  weight = None if sem.weighting == "visibility" else out.contribution
+  return guidance.score_and_accumulate(
+      zero, out.image, out.visible, weight, view, step, scorer, sem)
+
+
 def update_maps(maps: residual_lib.ResidualState,
                 sem: config_lib.SemanticConfig, *, res: jax.Array | None = None,
                 histogram: jax.Array | None = None

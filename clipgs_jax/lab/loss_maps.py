@@ -89,13 +89,9 @@ def loss_map_report(workdir: str, count: int = 3) -> dict:
                             cfg.gaussians.sh_degree)
   maps, truths, scores = {}, {}, {}
   totals = np.zeros(3, np.int64)
-  for i, name in enumerate(views.names):
-    m = scene_lib.crop(views, i, evaluation.view_map(
-        state.params, state.alive, state.maps, scorer, views, i, cfg,
-        degree))
+  for name, m, truth in evaluation.training_maps(
+      state.params, state.alive, state.maps, scorer, views, cfg, degree):
     pred = m > evaluation.MAP_THRESHOLD
-    truth = (None if views.masks is None else
-             scene_lib.crop(views, i, np.asarray(views.masks[i], bool)))
     if truth is not None:
       totals += evaluation.confusion(pred, truth)
     maps[name], truths[name] = m, truth
