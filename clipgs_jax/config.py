@@ -183,7 +183,8 @@ class SemanticConfig:
   #   level, so a clean view stays masked where the fit lags; an absolute
   #   one lets a clean view's map shrink as the fit improves (BUILD_NOTES)
   residual_min_alpha: float = 0.9  # a pixel is transient only where the
-  #   render's alpha exceeds this (0: everywhere). A transient hides a
+  #   render's alpha exceeds this (0: everywhere; with features: only in a
+  #   region where most pixels' alpha does). A transient hides a
   #   surface other views reconstruct; where the model has none, a high
   #   residual is static scene not yet fit, and masking it keeps it unfit
   #   (BUILD_NOTES.md, "Transient masks without an oracle")

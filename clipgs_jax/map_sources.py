@@ -81,8 +81,9 @@ def residual_map(source: ResidualSource, stats: residual.ResidualState,
       canvas: the pixels outside are neither transient nor static (0 in
       both maps' masks; residual.counts leaves them out).
     alpha: float [H, W], the render's alpha; needed when
-      sem.residual_min_alpha > 0 (a pixel is transient only where alpha
-      exceeds it).
+      sem.residual_min_alpha > 0: a pixel is transient only where alpha
+      exceeds it, or, with feature regions, only in a region where most
+      pixels' alpha does (the gate follows the region, as the vote does).
   Raises:
     ValueError: sem.residual_min_alpha > 0 and no alpha.
   """
@@ -101,6 +102,9 @@ def residual_map(source: ResidualSource, stats: residual.ResidualState,
       raise ValueError("residual_map: semantic.residual_min_alpha = "
                        f"{sem.residual_min_alpha} needs the render's alpha.")
     covered = (alpha > sem.residual_min_alpha).astype(transient.dtype)
+    if source.labels is not None:
+      covered = 1.0 - features.vote(covered, source.labels[view],
+                                    source.num_regions)
     transient, dropped = transient * covered, dropped * covered
   if valid is not None:
     transient, dropped = transient * valid, dropped * valid

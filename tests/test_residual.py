@@ -203,6 +203,31 @@ class SourceTest(absltest.TestCase):
     with self.assertRaisesRegex(ValueError, "needs the render's alpha"):
       map_sources.residual_map(*args, self._sem(residual_min_alpha=0.5))
 
+  def test_alpha_gate_follows_feature_regions(self):
+    photo = jnp.zeros((16, 16, 3))
+    render = photo + 1.0                           # every pixel fails
+    stats = residual.ResidualState.initial().replace(
+        threshold=jnp.float32(0.5))
+    labels = jnp.zeros((1, 16, 16), jnp.int32).at[0, :, 8:].set(1)
+    # Region 0 is mostly rendered surface, region 1 mostly empty.
+    alpha = (jnp.ones((16, 16)).at[:, :2].set(0.3)
+             .at[:, 8:14].set(0.3))
+    args = (stats, jnp.int32(0), render, photo, jnp.int32(5),
+            jax.random.key(0))
+    sem = self._sem(residual_min_alpha=0.5)
+    pixels = map_sources.residual_map(
+        map_sources.ResidualSource(), *args, sem, alpha=alpha)
+    np.testing.assert_array_equal(pixels.transient, alpha > 0.5)
+    regions = map_sources.residual_map(
+        map_sources.ResidualSource(labels=labels, num_regions=2), *args,
+        sem, alpha=alpha)
+    # Each region gets its majority's verdict, its empty pixels and its
+    # rendered ones alike.
+    np.testing.assert_array_equal(regions.transient[:, :8], 1.0)
+    np.testing.assert_array_equal(regions.transient[:, 8:], 0.0)
+    np.testing.assert_array_equal(regions.loss_weight,
+                                  1.0 - regions.transient)
+
   def test_oracle_patch_pools_to_the_grid(self):
     masks = np.zeros((2, 28, 42), bool)
     masks[0, :14, :21] = True         # one quadrant: 7 x 7 cells of 14 x 14
