@@ -193,15 +193,19 @@ def _demo_outputs(workdir: str, cfgs: dict, metrics: dict) -> dict:
   The rows are vanilla first, then the row the demo shows (the best one
   that needs nothing but the photos, or dense CLIP with weights), then any
   reference rows (ORACLE-PIXEL); the picture is the test view where the
-  shown row changes PSNR most against vanilla, one panel per row and the
-  ground truth, each titled with its label and PSNR there.
+  shown row changes PSNR most against vanilla (with one row, its worst
+  test view), one panel per row and the ground truth, each titled with
+  its label and PSNR there.
   """
   rows = list(cfgs)
   _, _, scene = run_lib.load_run(os.path.join(workdir, rows[0]))
   names = scene.test.names
   psnr = {k: np.array([m["test"]["per_image"][n]["psnr"] for n in names])
           for k, m in metrics.items()}
-  view = int(np.argmax(np.abs(psnr[rows[1]] - psnr[rows[0]])))
+  if len(rows) > 1:
+    view = int(np.argmax(np.abs(psnr[rows[1]] - psnr[rows[0]])))
+  else:
+    view = int(np.argmin(psnr[rows[0]]))
   stem = os.path.splitext(os.path.basename(names[view]))[0]
   renders = [images_lib.read_image(os.path.join(
       workdir, k, run_lib.TEST_RENDERS, stem + ".png")) for k in rows]

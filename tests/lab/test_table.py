@@ -290,6 +290,13 @@ class EndToEndTest(absltest.TestCase):
       scorers[row] = cfg["semantic"]["scorer"]
     self.assertEqual(scorers, {"residual": "residual",
                                "oracle_pixel_masked": "oracle"})
+    # One row (it used to stop with an IndexError after training): its
+    # finished run is not trained again, and the comparison shows it alone.
+    cd.sweep.rows = "residual"
+    with mock.patch.object(run_lib, "train_and_evaluate") as train:
+      one = sweep.run(cd, root)
+    train.assert_not_called()
+    self.assertEqual(sorted(one), ["residual", "view"])
 
 
 if __name__ == "__main__":
