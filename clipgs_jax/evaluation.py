@@ -188,29 +188,35 @@ MAP_THRESHOLD = 0.5
 
 
 @functools.lru_cache(maxsize=None)
-def _view_map_fn(cfg: config_lib.Config):
+def _view_map_fn(cfg: config_lib.Config, stages: bool = False):
   """Jitted (params, alive, stats, scorer, view, cam, photo, degree) -> the
-  map the loss would use for that training view now."""
+  map the loss would use for that training view now, or with `stages` the
+  residual map after each of its steps (map_sources.residual_stages)."""
   from clipgs_jax import map_sources  # pylint: disable=g-import-not-at-top
+  map_fn = map_sources.residual_stages if stages else map_sources.view_map
 
   def fn(params, alive, stats, scorer, view, cam, photo, degree):
     bg = jnp.asarray(cfg.train.background, jnp.float32)
     out = rasterize.render(params, alive, cam, bg, cfg.render, degree)
-    return map_sources.view_map(scorer, stats, view, out.image, out.alpha,
-                                photo, cfg.semantic)
+    return map_fn(scorer, stats, view, out.image, out.alpha, photo,
+                  cfg.semantic)
   return jax.jit(fn)
 
 
 def view_map(params: gaussians.GaussianParams, alive, stats, scorer, views,
-             index: int, cfg: config_lib.Config, degree) -> np.ndarray:
+             index: int, cfg: config_lib.Config, degree,
+             stages: bool = False):
   """float32 [H, W] in [0, 1], the transient map m a training step on view
-  `index` of `views` would use now (mask_quality's arguments)."""
+  `index` of `views` would use now (mask_quality's arguments); with
+  `stages` (a map_sources.ResidualSource only), {step name: the residual
+  map after that step}, the last being m."""
   # The one camera, not every view's, moves to the device per call.
   cam = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32),
                      camera_lib.camera_at(views.cameras, index))
-  return np.asarray(_view_map_fn(config_lib.compiled_part(cfg))(
+  out = _view_map_fn(config_lib.compiled_part(cfg), stages)(
       params, alive, stats, scorer, jnp.int32(index), cam,
-      jnp.asarray(views.images[index], jnp.float32), degree))
+      jnp.asarray(views.images[index], jnp.float32), degree)
+  return jax.tree.map(np.asarray, out)
 
 
 def mask_quality(params: gaussians.GaussianParams, alive, stats, scorer,
@@ -249,13 +255,15 @@ def mask_quality(params: gaussians.GaussianParams, alive, stats, scorer,
 
 
 def training_maps(params: gaussians.GaussianParams, alive, stats, scorer,
-                  views, cfg: config_lib.Config, degree):
+                  views, cfg: config_lib.Config, degree,
+                  stages: bool = False):
   """Yields (name, map, truth) for every training view in order: view_map
-  cropped to the view's photo, and its ground-truth mask (bool, cropped),
-  or None when the views have no masks (mask_quality's arguments)."""
+  cropped to the view's photo (with `stages`, its dict of step maps, each
+  cropped), and its ground-truth mask (bool, cropped), or None when the
+  views have no masks (mask_quality's arguments)."""
   for i, name in enumerate(views.names):
-    m = scene_lib.crop(views, i, view_map(params, alive, stats, scorer,
-                                          views, i, cfg, degree))
+    m = jax.tree.map(lambda x, i=i: scene_lib.crop(views, i, x), view_map(
+        params, alive, stats, scorer, views, i, cfg, degree, stages))
     truth = (None if views.masks is None else
              scene_lib.crop(views, i, np.asarray(views.masks[i], bool)))
     yield name, m, truth

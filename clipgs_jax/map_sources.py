@@ -26,6 +26,10 @@ from clipgs_jax import residual
 # transient only where the semantic map's p(transient) exceeds this.
 SEMANTIC_GATE = 0.5
 
+# The residual map's steps in the order they apply (_test's, then _gates');
+# a map skips the steps its source and config do not have.
+STAGES = ("threshold", "rule", "vote", "semantic", "alpha", "valid")
+
 
 @flax.struct.dataclass
 class ResidualSource:
@@ -60,6 +64,48 @@ class ResidualMap:
   residual: jax.Array
 
 
+def _test(source: ResidualSource, stats: residual.ResidualState,
+          view: jax.Array, res: jax.Array, sem: config_lib.SemanticConfig,
+          valid: jax.Array | None) -> dict[str, jax.Array]:
+  """The residual test's steps, each float32 [H, W] in {0, 1} (1 =
+  transient so far), in order: "threshold" (the residual at or above the
+  threshold), "rule" (the 3x3 or patch rule: residual.inliers) and, with
+  feature regions, "vote" (each region's majority); the last is the test's
+  verdict."""
+  steps = {"threshold": (res >= stats.threshold).astype(jnp.float32)}
+  inlier = residual.inliers(res, stats.threshold, sem.residual_rule, valid)
+  steps["rule"] = 1.0 - inlier
+  if source.labels is not None:
+    steps["vote"] = features.vote(inlier, source.labels[view],
+                                  source.num_regions)
+  return steps
+
+
+def _gates(source: ResidualSource, view: jax.Array,
+           sem: config_lib.SemanticConfig, valid: jax.Array | None,
+           alpha: jax.Array | None) -> dict[str, jax.Array]:
+  """The gates a transient pixel must pass, float [H, W] in {0, 1} each
+  (1 = it may be transient), in the order they apply: "semantic" (p >
+  SEMANTIC_GATE), "alpha" (the render covers it, by pixel or by region),
+  "valid" (inside the photo)."""
+  gates = {}
+  if source.semantic is not None:
+    gates["semantic"] = (source.semantic[view] > SEMANTIC_GATE).astype(
+        jnp.float32)
+  if sem.residual_min_alpha > 0:
+    if alpha is None:
+      raise ValueError("residual_map: semantic.residual_min_alpha = "
+                       f"{sem.residual_min_alpha} needs the render's alpha.")
+    covered = (alpha > sem.residual_min_alpha).astype(jnp.float32)
+    if source.labels is not None:
+      covered = 1.0 - features.vote(covered, source.labels[view],
+                                    source.num_regions)
+    gates["alpha"] = covered
+  if valid is not None:
+    gates["valid"] = valid
+  return gates
+
+
 def residual_map(source: ResidualSource, stats: residual.ResidualState,
                  view: jax.Array, render: jax.Array, photo: jax.Array,
                  step: jax.Array, key: jax.Array,
@@ -88,28 +134,30 @@ def residual_map(source: ResidualSource, stats: residual.ResidualState,
     ValueError: sem.residual_min_alpha > 0 and no alpha.
   """
   res = residual.residual(render, photo)
-  inlier = residual.inliers(res, stats.threshold, sem.residual_rule, valid)
-  if source.labels is not None:
-    inlier = 1.0 - features.vote(inlier, source.labels[view],
-                                 source.num_regions)
-  kept = residual.sample_inliers(inlier, step, key, sem.residual_warmup)
-  transient, dropped = 1.0 - inlier, 1.0 - kept
-  if source.semantic is not None:
-    gate = (source.semantic[view] > SEMANTIC_GATE).astype(transient.dtype)
+  transient = list(_test(source, stats, view, res, sem, valid).values())[-1]
+  kept = residual.sample_inliers(1.0 - transient, step, key,
+                                 sem.residual_warmup)
+  dropped = 1.0 - kept
+  for gate in _gates(source, view, sem, valid, alpha).values():
     transient, dropped = transient * gate, dropped * gate
-  if sem.residual_min_alpha > 0:
-    if alpha is None:
-      raise ValueError("residual_map: semantic.residual_min_alpha = "
-                       f"{sem.residual_min_alpha} needs the render's alpha.")
-    covered = (alpha > sem.residual_min_alpha).astype(transient.dtype)
-    if source.labels is not None:
-      covered = 1.0 - features.vote(covered, source.labels[view],
-                                    source.num_regions)
-    transient, dropped = transient * covered, dropped * covered
-  if valid is not None:
-    transient, dropped = transient * valid, dropped * valid
   return ResidualMap(transient=transient, loss_weight=1.0 - dropped,
                      residual=res)
+
+
+def residual_stages(source: ResidualSource, stats: residual.ResidualState,
+                    view: jax.Array, render: jax.Array, alpha: jax.Array,
+                    photo: jax.Array, sem: config_lib.SemanticConfig
+                    ) -> dict[str, jax.Array]:
+  """Where the residual map's transient pixels go: {step: the map after
+  it}, float32 [H, W] in {0, 1}, for the steps of STAGES the map has; the
+  last of them in STAGES' order equals residual_map's `transient` (the
+  warm-up samples only the loss weight). Arguments as residual_map's."""
+  res = residual.residual(render, photo)
+  stages = _test(source, stats, view, res, sem, None)
+  transient = list(stages.values())[-1]
+  for name, gate in _gates(source, view, sem, None, alpha).items():
+    transient = stages[name] = transient * gate
+  return stages
 
 
 def feature_regions(images, net: str, sizes=None) -> tuple[jax.Array, int]:

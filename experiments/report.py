@@ -28,7 +28,9 @@ loss_maps: with pixel evidence, the map m the loss uses for every
   training view with the final model, scored against the ground-truth
   masks, and a picture of the worst views (lowest IoU; clean views masked
   most): DIR/loss_maps.json and DIR/loss_maps.png (clipgs_jax/lab/
-  loss_maps.py).
+  loss_maps.py). For the residual map, its recall after each of its steps
+  (threshold, 3x3 rule, region vote, gates) and the most the feature
+  regions' vote could keep.
 curve: test MSE (log) against training time of each run's curve.json (a
   run folder or the curve.json itself).
 figures: per benchmark, a render grid and error curves of the table's
@@ -150,6 +152,9 @@ def _loss_maps() -> None:
   print(f"masked {pooled['masked_fraction']:.3f} of the training pixels; "
         + ", ".join(f"{k} {_fraction(pooled[k])}" for k in
                     ("precision", "recall", "iou") if k in pooled))
+  if "stages" in pooled:
+    print("  recall after each step of the residual map: " + ", ".join(
+        f"{k} {_fraction(v['recall'])}" for k, v in pooled["stages"].items()))
   for kind, names in out["worst"].items():
     print(f"  {kind}: {', '.join(names) or '(none)'}")
   print(f"wrote {out['json']}" + (f" and {out['png']}" if out["png"] else ""))

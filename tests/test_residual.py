@@ -228,6 +228,33 @@ class SourceTest(absltest.TestCase):
     np.testing.assert_array_equal(regions.loss_weight,
                                   1.0 - regions.transient)
 
+  def test_stages_end_in_the_map(self):
+    photo = jnp.zeros((16, 16, 3))
+    render = photo.at[2:14, 2:14].set(1.0).at[6:10, 6:10].set(0.2)
+    stats = residual.ResidualState.initial().replace(
+        threshold=jnp.float32(0.5))
+    source = map_sources.ResidualSource(
+        semantic=jnp.zeros((1, 16, 16)).at[0, :, :12].set(0.9),
+        labels=jnp.zeros((1, 16, 16), jnp.int32).at[0, 8:].set(1),
+        num_regions=2)
+    alpha = jnp.ones((16, 16)).at[:, :3].set(0.3)
+    sem = self._sem(residual_min_alpha=0.5)
+    stages = map_sources.residual_stages(source, stats, jnp.int32(0),
+                                         render, alpha, photo, sem)
+    self.assertEqual(list(stages), ["threshold", "rule", "vote",
+                                    "semantic", "alpha"])
+    self.assertEqual(tuple(k for k in map_sources.STAGES if k in stages),
+                     tuple(stages))
+    # The low residual in the middle fails the threshold; the 3x3 rule
+    # calls its interior static.
+    np.testing.assert_array_equal(stages["threshold"][6:10, 6:10], 0.0)
+    np.testing.assert_array_equal(stages["rule"][7:9, 7:9], 0.0)
+    transient = map_sources.residual_map(
+        source, stats, jnp.int32(0), render, photo, jnp.int32(5),
+        jax.random.key(0), sem, alpha=alpha).transient
+    np.testing.assert_array_equal(stages["alpha"], transient)
+    np.testing.assert_array_equal(stages["semantic"][:, 12:], 0.0)
+
   def test_oracle_patch_pools_to_the_grid(self):
     masks = np.zeros((2, 28, 42), bool)
     masks[0, :14, :21] = True         # one quadrant: 7 x 7 cells of 14 x 14

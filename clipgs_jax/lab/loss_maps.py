@@ -6,7 +6,11 @@ CLIP): the map m each training view's step would use with the final model
 of the worst views, photo | render | m | ground truth | errors, for the
 two ways a map fails: transient views where it misses or overreaches
 (lowest IoU) and views with no transient where it masks anyway (most
-masked pixels).
+masked pixels). For the residual map, where its recall goes: the share of
+the ground truth's pixels still transient after each of the map's steps
+(map_sources.residual_stages), and with feature regions the most their
+majority vote could keep (every region that the ground truth fills at
+least half of).
 """
 
 import os
@@ -15,8 +19,10 @@ import numpy as np
 from matplotlib import figure
 
 from clipgs_jax import evaluation
+from clipgs_jax import features
 from clipgs_jax import fileio
 from clipgs_jax import guidance
+from clipgs_jax import map_sources
 from clipgs_jax import plots
 from clipgs_jax import run as run_lib
 from clipgs_jax import sh
@@ -65,6 +71,32 @@ def worst_views(scores: dict[str, dict], count: int) -> dict[str, list[str]]:
                                 if scores[n]["masked_fraction"] > 0]}
 
 
+def stage_counts(stages: dict[str, np.ndarray], truth: np.ndarray,
+                 labels: np.ndarray | None, num_regions: int) -> dict:
+  """{step: [ground-truth pixels still transient, pixels transient]} of one
+  view's residual-map steps (map > MAP_THRESHOLD), plus "regions_best"
+  (the ground truth's majority vote over `labels`) when there are labels,
+  and "pixels": [ground-truth pixels, pixels]."""
+  out = {"pixels": [int(truth.sum()), truth.size]}
+  stages = {k: stages[k] for k in map_sources.STAGES if k in stages}
+  if labels is not None:
+    stages = stages | {"regions_best": np.asarray(features.vote(
+        ~truth, labels, num_regions))}
+  for name, m in stages.items():
+    pred = m > evaluation.MAP_THRESHOLD
+    out[name] = [int(np.count_nonzero(pred & truth)),
+                 int(np.count_nonzero(pred))]
+  return out
+
+
+def stage_summary(counts: dict) -> dict:
+  """{step: {"recall", "masked_fraction"}} of summed stage_counts."""
+  gt, pixels = counts["pixels"]
+  return {name: {"recall": float(hit / gt) if gt else None,
+                 "masked_fraction": float(masked / pixels)}
+          for name, (hit, masked) in counts.items() if name != "pixels"}
+
+
 def loss_map_report(workdir: str, count: int = 3) -> dict:
   """Writes LOSS_MAPS_JSON and LOSS_MAPS_PNG into a finished run folder.
 
@@ -87,10 +119,20 @@ def loss_map_report(workdir: str, count: int = 3) -> dict:
   scorer = guidance.make_scorer(cfg.semantic, scene)
   degree = sh.active_degree(state.step, cfg.densify.sh_degree_every,
                             cfg.gaussians.sh_degree)
-  maps, truths, scores = {}, {}, {}
+  stages = (isinstance(scorer, map_sources.ResidualSource)
+            and views.masks is not None)
+  maps, truths, scores, steps = {}, {}, {}, {}
   totals = np.zeros(3, np.int64)
-  for name, m, truth in evaluation.training_maps(
-      state.params, state.alive, state.maps, scorer, views, cfg, degree):
+  for i, (name, m, truth) in enumerate(evaluation.training_maps(
+      state.params, state.alive, state.maps, scorer, views, cfg, degree,
+      stages)):
+    if stages:
+      labels = (None if scorer.labels is None else
+                scene_lib.crop(views, i, np.asarray(scorer.labels[i])))
+      for key, c in stage_counts(m, truth, labels,
+                                 scorer.num_regions).items():
+        steps[key] = np.add(steps.get(key, 0), c)
+      m = m[[k for k in map_sources.STAGES if k in m][-1]]
     pred = m > evaluation.MAP_THRESHOLD
     if truth is not None:
       totals += evaluation.confusion(pred, truth)
@@ -101,6 +143,8 @@ def loss_map_report(workdir: str, count: int = 3) -> dict:
       [s["masked_fraction"] for s in scores.values()]))}
   if views.masks is not None:
     pooled |= evaluation.confusion_scores(totals)
+  if stages:
+    pooled["stages"] = stage_summary(steps)
   worst = (worst_views(scores, count) if views.masks is not None else
            {"most_masked": sorted(scores, key=lambda n: -scores[n][
                "masked_fraction"])[:count]})

@@ -311,6 +311,14 @@ def test_loss_map_report(residual_run):
       guidance.make_scorer(cfg.semantic, scene), scene.train, cfg, degree)
   for key in ("precision", "recall", "iou"):
     assert out["pooled"][key] == pytest.approx(quality[key])
+  # The 3x3 rule and the gates only take pixels away, and the last
+  # (the smoke config's alpha gate) is the map the loss uses.
+  stages = out["pooled"]["stages"]
+  assert set(stages) == {"threshold", "rule", "alpha"}
+  recalls = [stages[k]["recall"] for k in ("threshold", "rule", "alpha")]
+  assert recalls == sorted(recalls, reverse=True)
+  assert stages["alpha"]["recall"] == pytest.approx(quality["recall"])
+  assert "recall after each step" in proc.stdout
   for name in out["worst"]["clean_most_masked"]:
     assert out["per_view"][name]["transient_fraction"] == 0.0
   assert len(out["worst"]["lowest_iou"]) == 2
