@@ -160,6 +160,13 @@ def residual_stages(source: ResidualSource, stats: residual.ResidualState,
   return stages
 
 
+def in_stage_order(stages: dict) -> dict:
+  """`stages` (residual_stages' dict, or any dict keyed by its steps) in
+  STAGES' order, the last being the map: jax's pytrees (jit outputs,
+  jax.tree.map) sort dict keys, which loses it."""
+  return {k: stages[k] for k in STAGES if k in stages}
+
+
 def feature_regions(images, net: str, sizes=None) -> tuple[jax.Array, int]:
   """(int32 [V, H, W] regions of every training photo, label count), from
   the `net` backbone's features (features.regions, once per photo).

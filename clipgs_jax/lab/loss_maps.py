@@ -74,11 +74,11 @@ def worst_views(scores: dict[str, dict], count: int) -> dict[str, list[str]]:
 def stage_counts(stages: dict[str, np.ndarray], truth: np.ndarray,
                  labels: np.ndarray | None, num_regions: int) -> dict:
   """{step: [ground-truth pixels still transient, pixels transient]} of one
-  view's residual-map steps (map > MAP_THRESHOLD), plus "regions_best"
-  (the ground truth's majority vote over `labels`) when there are labels,
-  and "pixels": [ground-truth pixels, pixels]."""
+  view's residual-map steps (map > MAP_THRESHOLD, in the order of
+  `stages`), plus "regions_best" (the ground truth's majority vote over
+  `labels`) when there are labels, and "pixels": [ground-truth pixels,
+  pixels]."""
   out = {"pixels": [int(truth.sum()), truth.size]}
-  stages = {k: stages[k] for k in map_sources.STAGES if k in stages}
   if labels is not None:
     stages = stages | {"regions_best": np.asarray(features.vote(
         ~truth, labels, num_regions))}
@@ -119,20 +119,21 @@ def loss_map_report(workdir: str, count: int = 3) -> dict:
   scorer = guidance.make_scorer(cfg.semantic, scene)
   degree = sh.active_degree(state.step, cfg.densify.sh_degree_every,
                             cfg.gaussians.sh_degree)
-  stages = (isinstance(scorer, map_sources.ResidualSource)
-            and views.masks is not None)
+  by_stage = (isinstance(scorer, map_sources.ResidualSource)
+              and views.masks is not None)
   maps, truths, scores, steps = {}, {}, {}, {}
   totals = np.zeros(3, np.int64)
   for i, (name, m, truth) in enumerate(evaluation.training_maps(
       state.params, state.alive, state.maps, scorer, views, cfg, degree,
-      stages)):
-    if stages:
+      by_stage)):
+    if by_stage:
+      m = map_sources.in_stage_order(m)
       labels = (None if scorer.labels is None else
                 scene_lib.crop(views, i, np.asarray(scorer.labels[i])))
       for key, c in stage_counts(m, truth, labels,
                                  scorer.num_regions).items():
         steps[key] = np.add(steps.get(key, 0), c)
-      m = m[[k for k in map_sources.STAGES if k in m][-1]]
+      m = list(m.values())[-1]
     pred = m > evaluation.MAP_THRESHOLD
     if truth is not None:
       totals += evaluation.confusion(pred, truth)
@@ -143,7 +144,7 @@ def loss_map_report(workdir: str, count: int = 3) -> dict:
       [s["masked_fraction"] for s in scores.values()]))}
   if views.masks is not None:
     pooled |= evaluation.confusion_scores(totals)
-  if stages:
+  if by_stage:
     pooled["stages"] = stage_summary(steps)
   worst = (worst_views(scores, count) if views.masks is not None else
            {"most_masked": sorted(scores, key=lambda n: -scores[n][
