@@ -174,7 +174,10 @@ class SemanticConfig:
   residual_rule: str = "sls"   # sls (SpotLessSplats) | robustnerf
   residual_quantile: float = 0.7  # inlier share (SLS 0.7; RobustNeRF 0.8)
   residual_decay: float = 0.95  # histogram decay per step (RobustNeRF: 0)
-  residual_warmup: float = 3e-3  # rate of the Bernoulli warm-up; 0: none
+  residual_warmup: float = 3e-3  # rate of the Bernoulli warm-up per step
+  #   of a 20k-step run (SLS's 3e-3); scaled_to divides it by the run's
+  #   share of 20k, so the warm-up ends at the same share of any run
+  #   (0.024 at 2,500 steps); 0: none
   residual_median_factor: float = 3.0  # threshold >= this x the median
   #   residual (0: the quantile alone; BUILD_NOTES.md, "Transient masks
   #   without an oracle": a quantile masks its share of a clean view too)
@@ -215,7 +218,8 @@ class SemanticConfig:
     return dataclasses.replace(
         self, accumulate_start=scale(self.accumulate_start),
         reg_start=scale(self.reg_start), prune_start=scale(self.prune_start),
-        prune_every=scale(self.prune_every))
+        prune_every=scale(self.prune_every),
+        residual_warmup=self.residual_warmup / f)
 
 
 @dataclasses.dataclass(frozen=True)

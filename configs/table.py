@@ -59,11 +59,12 @@ def get_config():
   # "Localized evidence"); the paper's image-level row keeps the paper's
   # schedule.
   pixel = {"evidence": "pixel", "reset_quiet": RESET_QUIET}
-  # The residual rows: SpotLessSplats' loss, masked L1 without the SSIM
-  # term (BUILD_NOTES.md, "Transient masks without an oracle").
+  # The residual rows keep 3DGS's loss (L1 + 0.2 D-SSIM), masked, as the
+  # ORACLE rows do; SpotLessSplats drops the SSIM term, which cost
+  # these 2,500-step runs (BUILD_NOTES.md, "Transient masks without an
+  # oracle").
   residual = {"semantic": {"scorer": "residual", "loss_masking": True,
-                           **pixel},
-              "train": {"lambda_dssim": 0.0}}
+                           **pixel}}
   features = {"semantic": {"features": "alex"}}
   gated = {"semantic": {"residual": True}}
   clean = {"data": {"train_split": "clean"}}

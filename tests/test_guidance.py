@@ -113,6 +113,11 @@ class ScheduleTest(parameterized.TestCase):
     # 500/2000/5000/1000 of 20k steps -> one tenth.
     self.assertEqual((sem.accumulate_start, sem.reg_start, sem.prune_start,
                       sem.prune_every), (50, 200, 500, 100))
+    # The warm-up's rate grows as the run shrinks: the same share at the
+    # same fraction of the run (0.024 exactly at the table's 2,500 steps).
+    self.assertAlmostEqual(sem.residual_warmup, 0.03)
+    self.assertEqual(config.SemanticConfig().scaled_to(2500).residual_warmup,
+                     0.024)
 
 
 class ScorerTest(absltest.TestCase):

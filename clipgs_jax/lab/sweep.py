@@ -123,8 +123,8 @@ def check_row_overrides(cd: ml_collections.ConfigDict, rows: list[str],
   """Refuses a command-line override that a row's own override replaces.
 
   A row's overrides win over the base config, command line included, so
-  `--config.train.lambda_dssim=0.2` would not reach a row that sets it
-  (the residual rows set 0): one line naming the row and the key.
+  `--config.semantic.loss_masking=False` would not reach a row that sets
+  it (the residual rows set True): one line naming the row and the key.
   """
   for row in rows:
     pinned = cd.sweep.row_overrides.get(row)

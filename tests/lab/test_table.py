@@ -127,15 +127,15 @@ class FormatTest(absltest.TestCase):
   def test_a_flag_a_row_overrides_is_refused(self):
     keys = sweep.command_line_keys(
         ["train.py", "--config=configs/table.py",
-         "--config.train.lambda_dssim=0.2", "--scene=X"])
-    self.assertEqual(keys, {"train.lambda_dssim"})
+         "--config.semantic.loss_masking=False", "--scene=X"])
+    self.assertEqual(keys, {"semantic.loss_masking"})
     cd = _table_cd()
-    cd.train.lambda_dssim = 0.2      # as the flag leaves it
+    cd.semantic.loss_masking = False   # as the flag leaves it
     sweep.check_row_overrides(cd, ["vanilla", "clean"], keys)
     with self.assertRaisesRegex(app.UsageError,
                                 "does not reach row 'residual'"):
       sweep.check_row_overrides(cd, ["vanilla", "residual"], keys)
-    cd.train.lambda_dssim = 0.0      # the row's own value: no conflict
+    cd.semantic.loss_masking = True    # the row's own value: no conflict
     sweep.check_row_overrides(cd, ["residual"], keys)
 
   def test_row_configs(self):
@@ -157,15 +157,14 @@ class FormatTest(absltest.TestCase):
     self.assertTrue(cfgs["oracle_pixel_masked"].semantic.loss_masking)
     self.assertEqual(cfgs["clip_pixel"].semantic.scorer, "clip")
     # The residual rows: the residual map (with feature regions, or gated
-    # by a semantic map), loss masking, SpotLessSplats' L1-only loss; their
-    # controls train on the clean twins.
+    # by a semantic map) and loss masking, with the benchmark's loss (L1 +
+    # D-SSIM, as the ORACLE rows); their controls train on the clean twins.
     residual_rows = ("residual", "residual_features", "oracle_patch_residual",
                      "clip_residual", "residual_clean",
                      "residual_features_clean")
     for row in residual_rows:
       self.assertTrue(cfgs[row].semantic.uses_residual, row)
       self.assertTrue(cfgs[row].semantic.loss_masking, row)
-      self.assertEqual(cfgs[row].train.lambda_dssim, 0.0, row)
     self.assertEqual(cfgs["residual_features"].semantic.features, "alex")
     self.assertEqual(cfgs["oracle_patch_residual"].semantic.scorer,
                      "oracle_patch")
@@ -175,9 +174,7 @@ class FormatTest(absltest.TestCase):
                      cfgs["residual_features"].semantic)
     for row, cfg in cfgs.items():   # everything else is the benchmark's
       self.assertEqual(cfg.render, bench.render)
-      train = (dataclasses.replace(bench.train, lambda_dssim=0.0)
-               if row in residual_rows else bench.train)
-      self.assertEqual(cfg.train, train)
+      self.assertEqual(cfg.train, bench.train)
       self.assertEqual(cfg.semantic.prune_start, sem.prune_start)
 
 
