@@ -47,7 +47,9 @@ def get_config():
           # the default absolute floor of 0.15 costs the gain (test PSNR
           # 15.40, clean twins 19.81; without it 16.24, 19.80; vanilla
           # 15.21, 19.96). With the default alpha gate (0.9): 15.85,
-          # clean twins 20.05.
+          # clean twins 20.05; with the warm-up scaled to the 700 steps
+          # (29907a2): 15.76, 19.73 (with the SSIM term, as configs/
+          # table.py's rows, 15.66, 19.51).
           "residual": {
               "semantic": {"scorer": "residual",
                            "residual_min_threshold": 0.0, **pixel},
