@@ -35,21 +35,10 @@ import os
 
 from ml_collections import config_dict
 
-from clipgs_jax import config as config_lib
 from clipgs_jax import config_file
 from clipgs_jax.lab import table
 
 RESET_QUIET = 500  # 1/6 of the 3,000-step reset cadence
-# Eq. 13's "rarely seen" clause in the residual rows: the paper's n_min =
-# 10 views in its 1,000 steps between prunes, scaled as the rest of the
-# schedule (1.25 views in the 125 steps between a 2,500-step run's
-# prunes). A row's view count starts at 0 when densification writes it,
-# so unscaled the clause removes faint new rows seen fewer than 10 times
-# in 125 steps: ~36,600 rows of a run on bonsai's clean twins, where the
-# residual rows lost 0.2-0.7 dB to vanilla (BUILD_NOTES.md, "Transient
-# masks without an oracle"). The ORACLE rows keep the paper's 10, as
-# measured.
-PAPER_N_MIN_SHARE = config_lib.SemanticConfig.n_min / config_lib.PAPER_STEPS
 
 
 def _merge(*sections: dict) -> dict:
@@ -74,9 +63,8 @@ def get_config():
   # ORACLE rows do; SpotLessSplats drops the SSIM term, which cost
   # these 2,500-step runs (BUILD_NOTES.md, "Transient masks without an
   # oracle").
-  residual = {"semantic": {
-      "scorer": "residual", "loss_masking": True,
-      "n_min": cd.train.get_ref("steps") * PAPER_N_MIN_SHARE, **pixel}}
+  residual = {"semantic": {"scorer": "residual", "loss_masking": True,
+                           **pixel}}
   features = {"semantic": {"features": "alex"}}
   gated = {"semantic": {"residual": True}}
   clean = {"data": {"train_split": "clean"}}
