@@ -12,7 +12,8 @@ features or views.
   python experiments/bench.py --bench=features --bench_scene=DIR
       [--bench_downscale=8 --repeats=21]
   python experiments/bench.py --bench=views --bench_scene=DIR
-      [--bench_downscale=4 --batch_devices=1x1,2x1,4x1,2x2,4x2 --host_devices=2]
+      [--bench_downscale=4 --batch_devices=1x1,2x1,4x1,2x2,4x2 --host_devices=2
+       --device_lanes=auto|scan|vmap]
 
 rasterizer: custom VJP against plain autodiff of the forward, per (N, image
   size, variant), on Gaussians scattered in the view frustum.
@@ -124,6 +125,10 @@ _BATCH_DEVICES = flags.DEFINE_list(
 _HOST_DEVICES = flags.DEFINE_integer(
     "host_devices", 2, "views: CPU devices the host is split into (XLA's "
     "forced host devices); a GPU machine uses its GPUs.")
+_DEVICE_LANES = flags.DEFINE_enum(
+    "device_lanes", "auto", ["auto", "scan", "vmap"],
+    "views: how a device renders its B / D lanes: auto (vmap on an "
+    "accelerator, scan on a CPU: batch_step.lanes_vmapped), or either.")
 flags.mark_flag_as_required("bench")
 
 
@@ -222,6 +227,8 @@ def _results():
                   _BATCH_DEVICES.value],
         steps=_TIMED_STEPS.value,
         num_gaussians=_ints(_value("num_gaussians", _NUM))[0],
+        vmap_lanes={"auto": None, "scan": False,
+                    "vmap": True}[_DEVICE_LANES.value],
         render=config_lib.RenderConfig(
             tile_budget=budget, chunk_size=_CHUNK.value, lanes=_LANES.value,
             tile_size=_TILE_SIZE.value))

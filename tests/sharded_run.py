@@ -73,23 +73,28 @@ def config():
           prune_start=25, prune_every=10))
 
 
-def start(cfg, scene, workdir: str) -> None:
-  """Writes the step-0 checkpoint a run resumes from: the initial state
-  with anisotropic Gaussians. From isotropic ones the quaternions' exact
-  gradient is 0 and their computed one rounding noise, which Adam (eps
-  1e-15) turns into a full learning-rate step of random sign: no two
-  compiled programs would agree on it."""
+def anisotropic_state(cfg, scene):
+  """The initial state with anisotropic Gaussians. From isotropic ones the
+  quaternions' exact gradient is 0 and their computed one rounding noise,
+  which Adam (eps 1e-15) turns into a full learning-rate step of random
+  sign: no two compiled programs would agree on it."""
   import jax  # pylint: disable=g-import-not-at-top
-  from clipgs_jax import checkpoint  # pylint: disable=g-import-not-at-top
   from clipgs_jax import train  # pylint: disable=g-import-not-at-top
   state = train.initial_state(cfg, scene)
   rng = np.random.default_rng(0)
   log_scales = state.params.log_scales + rng.uniform(
       -0.4, 0.4, state.params.log_scales.shape).astype(np.float32)
-  state = state.replace(params=state.params.replace(
+  return state.replace(params=state.params.replace(
       log_scales=jax.numpy.asarray(log_scales)))
-  checkpoint.save(os.path.join(workdir, train.CHECKPOINT_NAME), state, cfg,
-                  extra={})
+
+
+def start(cfg, scene, workdir: str) -> None:
+  """Writes the step-0 checkpoint a run resumes from
+  (`anisotropic_state`)."""
+  from clipgs_jax import checkpoint  # pylint: disable=g-import-not-at-top
+  from clipgs_jax import train  # pylint: disable=g-import-not-at-top
+  checkpoint.save(os.path.join(workdir, train.CHECKPOINT_NAME),
+                  anisotropic_state(cfg, scene), cfg, extra={})
 
 
 def main(mode: str, out: str, *args):

@@ -35,7 +35,8 @@ def views_per_second(scene_path: str, downscale: int, *,
                      variants: list[tuple[int, int]], steps: int,
                      render: config_lib.RenderConfig,
                      num_gaussians: int = 0, warmup: int = 2,
-                     chunk: int = 10) -> list[dict]:
+                     chunk: int = 10,
+                     vmap_lanes: bool | None = None) -> list[dict]:
   """Times the train step of each (B, D) variant.
 
   (1, 1) is train.train_step, the one-view step every B = 1 run on photos
@@ -50,8 +51,11 @@ def views_per_second(scene_path: str, downscale: int, *,
       this many Gaussians (timing.stand_in).
     warmup: untimed steps after the compiling one.
     chunk: steps dispatched back to back in the second way.
+    vmap_lanes: how a device renders its lanes (batch_step.make_step;
+      None: batch_step.lanes_vmapped).
   Returns:
-    One dict per variant: compile_s (the first step); mean wall and CPU
+    One dict per variant: lanes (how its step runs: train_step, one
+    lane a device, vmap or scan); compile_s (the first step); mean wall and CPU
     ms per step, views per second of wall time and per CPU second, each
     step waited for; the same "..._pipelined", steps back to back; the
     load average before and after.
@@ -64,7 +68,7 @@ def views_per_second(scene_path: str, downscale: int, *,
     params, alive = timing.stand_in(state0.params, state0.alive,
                                     num_gaussians)
     state0 = train.init_state(base, params, alive)
-  fns, data, states, compile_s = {}, {}, {}, {}
+  fns, data, states, compile_s, how = {}, {}, {}, {}, {}
   for size, count in variants:
     name = f"B={size} D={count}"
     cfg = dataclasses.replace(base, train=dataclasses.replace(
@@ -72,10 +76,14 @@ def views_per_second(scene_path: str, downscale: int, *,
     state = jax.tree.map(jnp.copy, state0)
     if (size, count) == (1, 1):
       fn, views = train.make_train_step(cfg), train.make_batch(scene.train)
+      how[name] = "train_step"
     else:
       mesh = sharding.make_mesh(size, jax.devices()[:count])
-      fn = batch_step.make_step(cfg, mesh)
+      fn = batch_step.make_step(cfg, mesh, vmap_lanes)
       views, _ = sharding.lanes_of(scene, size, mesh)
+      how[name] = ("one lane" if size == count else "vmap"
+                   if (batch_step.lanes_vmapped(mesh) if vmap_lanes is None
+                       else vmap_lanes) else "scan")
       state = sharding.replicate(state, mesh)
     tic = time.perf_counter()
     state, _ = jax.block_until_ready(fn(state, views, None))
@@ -105,6 +113,7 @@ def views_per_second(scene_path: str, downscale: int, *,
   for (size, count), name in zip(variants, fns):
     row = {
         "variant": name, "batch_size": size, "devices": count,
+        "lanes": how[name],
         "scene": scene_path, "downscale": downscale, "image": [w, h],
         "num_gaussians": int(np.sum(np.asarray(state0.alive))),
         "steps": len(wall[name, ""]), "chunk": chunk,
