@@ -55,10 +55,10 @@ def views_per_second(scene_path: str, downscale: int, *,
       None: batch_step.lanes_vmapped).
   Returns:
     One dict per variant: lanes (how its step runs: train_step, one
-    lane a device, vmap or scan); compile_s (the first step); mean wall and CPU
-    ms per step, views per second of wall time and per CPU second, each
-    step waited for; the same "..._pipelined", steps back to back; the
-    load average before and after.
+    lane a device, vmap or scan); compile_s (the first step); mean wall
+    and CPU ms per step, views per second of wall time and per CPU
+    second, each step waited for; the same "..._pipelined", steps back
+    to back; the load average before and after.
   """
   load_before = os.getloadavg()[0]
   scene = scene_lib.load_scene(scene_path, downscale=downscale)
@@ -79,11 +79,12 @@ def views_per_second(scene_path: str, downscale: int, *,
       how[name] = "train_step"
     else:
       mesh = sharding.make_mesh(size, jax.devices()[:count])
-      fn = batch_step.make_step(cfg, mesh, vmap_lanes)
+      vmap = (batch_step.lanes_vmapped(mesh) if vmap_lanes is None
+              else vmap_lanes)
+      fn = batch_step.make_step(cfg, mesh, vmap)
       views, _ = sharding.lanes_of(scene, size, mesh)
-      how[name] = ("one lane" if size == count else "vmap"
-                   if (batch_step.lanes_vmapped(mesh) if vmap_lanes is None
-                       else vmap_lanes) else "scan")
+      how[name] = ("one lane" if size == count
+                   else "vmap" if vmap else "scan")
       state = sharding.replicate(state, mesh)
     tic = time.perf_counter()
     state, _ = jax.block_until_ready(fn(state, views, None))
