@@ -191,13 +191,6 @@ class SemanticConfig:
   #   surface other views reconstruct; where the model has none, a high
   #   residual is static scene not yet fit, and masking it keeps it unfit
   #   (BUILD_NOTES.md, "Transient masks without an oracle")
-  residual_max_drawn_score: float = 0.0  # a pixel is transient only where
-  #   the Gaussians the render draws there have, by blending weight, s_j
-  #   (the share of their light called transient so far) under this (0:
-  #   off; with features: by region). A transient hides a surface other
-  #   views call static; where the model draws Gaussians whose light is
-  #   mostly called transient wherever seen, the residual is scene not yet
-  #   fit, or a ghost the loss should remove (BUILD_NOTES.md)
   features: str = ""           # residual map: "" per pixel, or "alex" /
   #   "vgg": each photo's ImageNet-feature regions (features.py) take the
   #   majority verdict of the residual test inside them

@@ -218,14 +218,6 @@ def _residual_problems(sem: config_lib.SemanticConfig) -> list[str]:
   if not 0.0 <= sem.residual_min_alpha < 1.0:
     problems.append(f"residual_min_alpha={sem.residual_min_alpha} is not in "
                     "[0, 1)")
-  if not 0.0 <= sem.residual_max_drawn_score <= 1.0:
-    problems.append("residual_max_drawn_score="
-                    f"{sem.residual_max_drawn_score} is not in [0, 1]")
-  if sem.residual_max_drawn_score > 0 and not (sem.uses_residual
-                                               and sem.localized):
-    problems.append("residual_max_drawn_score gates the residual map by "
-                    "pixel evidence: it needs scorer='residual' (or "
-                    "residual=True) and evidence='pixel'")
   if not sem.residual_warmup >= 0:
     problems.append(f"residual_warmup={sem.residual_warmup} must be >= 0")
   return problems

@@ -12,7 +12,6 @@ from clipgs_jax import config as config_lib
 from clipgs_jax import gaussians
 from clipgs_jax import metrics as metrics_lib
 from clipgs_jax import rasterize
-from clipgs_jax import semantic as semantic_lib
 from clipgs_jax.data import scene as scene_lib
 
 
@@ -190,31 +189,23 @@ MAP_THRESHOLD = 0.5
 
 @functools.lru_cache(maxsize=None)
 def _view_map_fn(cfg: config_lib.Config, stages: bool = False):
-  """Jitted (params, alive, stats, semantic, scorer, view, cam, photo,
-  degree) -> the map the loss would use for that training view now, or
-  with `stages` the residual map after each of its steps
-  (map_sources.residual_stages)."""
+  """Jitted (params, alive, stats, scorer, view, cam, photo, degree) -> the
+  map the loss would use for that training view now, or with `stages` the
+  residual map after each of its steps (map_sources.residual_stages)."""
   from clipgs_jax import map_sources  # pylint: disable=g-import-not-at-top
   map_fn = map_sources.residual_stages if stages else map_sources.view_map
-  sem = cfg.semantic
 
-  def fn(params, alive, stats, semantic, scorer, view, cam, photo, degree):
+  def fn(params, alive, stats, scorer, view, cam, photo, degree):
     bg = jnp.asarray(cfg.train.background, jnp.float32)
-    gated = (sem.residual_max_drawn_score > 0
-             and isinstance(scorer, map_sources.ResidualSource))
-    overlay = semantic_lib.judged_scores(semantic) if gated else None
-    out = rasterize.render(params, alive, cam, bg, cfg.render, degree,
-                           overlay=overlay)
-    drawn = (map_sources.drawn_score(out.overlay_image, out.alpha)
-             if gated else None)
-    return map_fn(scorer, stats, view, out.image, out.alpha, photo, sem,
-                  drawn=drawn)
+    out = rasterize.render(params, alive, cam, bg, cfg.render, degree)
+    return map_fn(scorer, stats, view, out.image, out.alpha, photo,
+                  cfg.semantic)
   return jax.jit(fn)
 
 
 def view_map(params: gaussians.GaussianParams, alive, stats, scorer, views,
              index: int, cfg: config_lib.Config, degree,
-             stages: bool = False, semantic=None):
+             stages: bool = False):
   """float32 [H, W] in [0, 1], the transient map m a training step on view
   `index` of `views` would use now (mask_quality's arguments); with
   `stages` (a map_sources.ResidualSource only), {step name: the residual
@@ -222,18 +213,14 @@ def view_map(params: gaussians.GaussianParams, alive, stats, scorer, views,
   # The one camera, not every view's, moves to the device per call.
   cam = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32),
                      camera_lib.camera_at(views.cameras, index))
-  if semantic is None and cfg.semantic.residual_max_drawn_score > 0:
-    raise ValueError("view_map: semantic.residual_max_drawn_score needs the "
-                     "run's semantic statistics (semantic=).")
   out = _view_map_fn(config_lib.compiled_part(cfg), stages)(
-      params, alive, stats, semantic, scorer, jnp.int32(index), cam,
+      params, alive, stats, scorer, jnp.int32(index), cam,
       jnp.asarray(views.images[index], jnp.float32), degree)
   return jax.tree.map(np.asarray, out)
 
 
 def mask_quality(params: gaussians.GaussianParams, alive, stats, scorer,
-                 views, cfg: config_lib.Config, degree,
-                 semantic=None) -> dict | None:
+                 views, cfg: config_lib.Config, degree) -> dict | None:
   """How well the transient maps the loss uses match the ground truth.
 
   For every training view: the map m that a training step on it would use
@@ -249,8 +236,6 @@ def mask_quality(params: gaussians.GaussianParams, alive, stats, scorer,
     views: the training Views, with masks.
     cfg: the run's config.
     degree: int32 [], the SH degree the steps use now.
-    semantic: TrainState.semantic; needed by the residual map's drawn-score
-      gate (semantic.residual_max_drawn_score).
   Returns:
     {"precision", "recall", "iou" (pixels pooled over all views; None where
     undefined), "per_view": {name: {"precision", "recall", "iou"}}}, or
@@ -261,7 +246,7 @@ def mask_quality(params: gaussians.GaussianParams, alive, stats, scorer,
   totals = np.zeros(3, np.int64)
   per_view = {}
   for name, m, truth in training_maps(params, alive, stats, scorer, views,
-                                      cfg, degree, semantic=semantic):
+                                      cfg, degree):
     counts = confusion(m > MAP_THRESHOLD, truth)
     totals += counts
     per_view[name] = confusion_scores(counts)
@@ -271,15 +256,14 @@ def mask_quality(params: gaussians.GaussianParams, alive, stats, scorer,
 
 def training_maps(params: gaussians.GaussianParams, alive, stats, scorer,
                   views, cfg: config_lib.Config, degree,
-                  stages: bool = False, semantic=None):
+                  stages: bool = False):
   """Yields (name, map, truth) for every training view in order: view_map
   cropped to the view's photo (with `stages`, its dict of step maps, each
   cropped), and its ground-truth mask (bool, cropped), or None when the
   views have no masks (mask_quality's arguments)."""
   for i, name in enumerate(views.names):
     m = jax.tree.map(lambda x, i=i: scene_lib.crop(views, i, x), view_map(
-        params, alive, stats, scorer, views, i, cfg, degree, stages,
-        semantic))
+        params, alive, stats, scorer, views, i, cfg, degree, stages))
     truth = (None if views.masks is None else
              scene_lib.crop(views, i, np.asarray(views.masks[i], bool)))
     yield name, m, truth

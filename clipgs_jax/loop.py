@@ -173,8 +173,8 @@ def eval_point(state: state_lib.TrainState, flog: FitLog, step: int,
   evidence on a scene with masks, also the quality of the maps the loss
   uses (evaluation.mask_quality)."""
   # On one device's copy: a replicated state would render on every device.
-  params, alive, maps, semantic, done = sharding.local(
-      (state.params, state.alive, state.maps, state.semantic, state.step))
+  params, alive, maps, done = sharding.local(
+      (state.params, state.alive, state.maps, state.step))
   result = evaluation.evaluate(params, alive, ctx.scene.test, ctx.cfg,
                                psnr_only=True)
   _log.info("step %d: test PSNR %.3f after %.1f s of training, %d alive",
@@ -186,7 +186,7 @@ def eval_point(state: state_lib.TrainState, flog: FitLog, step: int,
   if ctx.cfg.semantic.localized and ctx.scene.train.masks is not None:
     quality = evaluation.mask_quality(params, alive, maps, ctx.scorer,
                                       ctx.scene.train, ctx.cfg,
-                                      _degree(done, ctx), semantic)
+                                      _degree(done, ctx))
     point.update({f"mask_{k}": quality[k]
                   for k in ("precision", "recall", "iou")})
     _log.info("step %d: transient maps vs ground truth: precision %s, "
@@ -232,7 +232,7 @@ def summarize_view(state: state_lib.TrainState, step: int,
   if ctx.cfg.semantic.localized and ctx.scorer is not None:
     ctx.summary.image(step, "train_view/transient_map", evaluation.view_map(
         state.params, state.alive, state.maps, ctx.scorer, train, i,
-        ctx.cfg, _degree(state.step, ctx), semantic=state.semantic))
+        ctx.cfg, _degree(state.step, ctx)))
   if train.masks is not None:
     ctx.summary.image(step, "train_view/ground_truth_mask", train.masks[i])
 

@@ -28,7 +28,7 @@ SEMANTIC_GATE = 0.5
 
 # The residual map's steps in the order they apply (_test's, then _gates');
 # a map skips the steps its source and config do not have.
-STAGES = ("threshold", "rule", "vote", "semantic", "alpha", "drawn", "valid")
+STAGES = ("threshold", "rule", "vote", "semantic", "alpha", "valid")
 
 
 @flax.struct.dataclass
@@ -81,33 +81,13 @@ def _test(source: ResidualSource, stats: residual.ResidualState,
   return steps
 
 
-def drawn_score(overlay_image: jax.Array, alpha: jax.Array) -> jax.Array:
-  """float [H, W]: the blending-weighted mean of the drawn Gaussians' s_j
-  (a render's overlay_image of s over its alpha; 0 where nothing is
-  drawn)."""
-  drawn = alpha > 0
-  return jnp.where(drawn, overlay_image / jnp.where(drawn, alpha, 1.0), 0.0)
-
-
-def _region_gate(ok: jax.Array, source: ResidualSource,
-                 view: jax.Array) -> jax.Array:
-  """A per-pixel gate `ok` (1 = may be transient), by pixel, or with
-  feature regions by each region's majority (as the vote)."""
-  if source.labels is None:
-    return ok
-  return 1.0 - features.vote(ok, source.labels[view], source.num_regions)
-
-
 def _gates(source: ResidualSource, view: jax.Array,
            sem: config_lib.SemanticConfig, valid: jax.Array | None,
-           alpha: jax.Array | None, drawn: jax.Array | None
-           ) -> dict[str, jax.Array]:
+           alpha: jax.Array | None) -> dict[str, jax.Array]:
   """The gates a transient pixel must pass, float [H, W] in {0, 1} each
   (1 = it may be transient), in the order they apply: "semantic" (p >
-  SEMANTIC_GATE), "alpha" (the render covers it), "drawn" (the Gaussians
-  drawn there are mostly judged static: drawn_score under
-  residual_max_drawn_score), each by pixel or by region, "valid" (inside
-  the photo)."""
+  SEMANTIC_GATE), "alpha" (the render covers it, by pixel or by region),
+  "valid" (inside the photo)."""
   gates = {}
   if source.semantic is not None:
     gates["semantic"] = (source.semantic[view] > SEMANTIC_GATE).astype(
@@ -116,16 +96,11 @@ def _gates(source: ResidualSource, view: jax.Array,
     if alpha is None:
       raise ValueError("residual_map: semantic.residual_min_alpha = "
                        f"{sem.residual_min_alpha} needs the render's alpha.")
-    gates["alpha"] = _region_gate(
-        (alpha > sem.residual_min_alpha).astype(jnp.float32), source, view)
-  if sem.residual_max_drawn_score > 0:
-    if drawn is None:
-      raise ValueError("residual_map: semantic.residual_max_drawn_score = "
-                       f"{sem.residual_max_drawn_score} needs the render's "
-                       "drawn score (map_sources.drawn_score).")
-    gates["drawn"] = _region_gate(
-        (drawn < sem.residual_max_drawn_score).astype(jnp.float32), source,
-        view)
+    covered = (alpha > sem.residual_min_alpha).astype(jnp.float32)
+    if source.labels is not None:
+      covered = 1.0 - features.vote(covered, source.labels[view],
+                                    source.num_regions)
+    gates["alpha"] = covered
   if valid is not None:
     gates["valid"] = valid
   return gates
@@ -136,8 +111,7 @@ def residual_map(source: ResidualSource, stats: residual.ResidualState,
                  step: jax.Array, key: jax.Array,
                  sem: config_lib.SemanticConfig,
                  valid: jax.Array | None = None,
-                 alpha: jax.Array | None = None,
-                 drawn: jax.Array | None = None) -> ResidualMap:
+                 alpha: jax.Array | None = None) -> ResidualMap:
   """The transient map of training view `view` at `step`.
 
   Args:
@@ -156,19 +130,15 @@ def residual_map(source: ResidualSource, stats: residual.ResidualState,
       sem.residual_min_alpha > 0: a pixel is transient only where alpha
       exceeds it, or, with feature regions, only in a region where most
       pixels' alpha does (the gate follows the region, as the vote does).
-    drawn: float [H, W], drawn_score of the render; needed when
-      sem.residual_max_drawn_score > 0 (a pixel, or region, is transient
-      only where it is under that).
   Raises:
-    ValueError: sem.residual_min_alpha > 0 and no alpha, or
-      sem.residual_max_drawn_score > 0 and no drawn.
+    ValueError: sem.residual_min_alpha > 0 and no alpha.
   """
   res = residual.residual(render, photo)
   transient = list(_test(source, stats, view, res, sem, valid).values())[-1]
   kept = residual.sample_inliers(1.0 - transient, step, key,
                                  sem.residual_warmup)
   dropped = 1.0 - kept
-  for gate in _gates(source, view, sem, valid, alpha, drawn).values():
+  for gate in _gates(source, view, sem, valid, alpha).values():
     transient, dropped = transient * gate, dropped * gate
   return ResidualMap(transient=transient, loss_weight=1.0 - dropped,
                      residual=res)
@@ -176,8 +146,7 @@ def residual_map(source: ResidualSource, stats: residual.ResidualState,
 
 def residual_stages(source: ResidualSource, stats: residual.ResidualState,
                     view: jax.Array, render: jax.Array, alpha: jax.Array,
-                    photo: jax.Array, sem: config_lib.SemanticConfig,
-                    drawn: jax.Array | None = None
+                    photo: jax.Array, sem: config_lib.SemanticConfig
                     ) -> dict[str, jax.Array]:
   """Where the residual map's transient pixels go: {step: the map after
   it}, float32 [H, W] in {0, 1}, for the steps of STAGES the map has; the
@@ -186,7 +155,7 @@ def residual_stages(source: ResidualSource, stats: residual.ResidualState,
   res = residual.residual(render, photo)
   stages = _test(source, stats, view, res, sem, None)
   transient = list(stages.values())[-1]
-  for name, gate in _gates(source, view, sem, None, alpha, drawn).items():
+  for name, gate in _gates(source, view, sem, None, alpha).items():
     transient = stages[name] = transient * gate
   return stages
 
@@ -253,15 +222,13 @@ def oracle_patch_maps(masks, grid: int) -> jax.Array:
 
 def view_map(scorer, stats: residual.ResidualState | None, view: jax.Array,
              render: jax.Array, alpha: jax.Array, photo: jax.Array,
-             sem: config_lib.SemanticConfig,
-             drawn: jax.Array | None = None) -> jax.Array:
+             sem: config_lib.SemanticConfig) -> jax.Array:
   """float32 [H, W], the map m a training step on `view` would use now:
-  the residual map for a ResidualSource (from `render`, `alpha` and
-  `drawn`, the view rendered by the current model; m does not depend on
-  the warm-up's sampling), else the static map of a guidance.PixelMapScorer (`render`
+  the residual map for a ResidualSource (from `render` and `alpha`, the
+  view rendered by the current model; m does not depend on the warm-up's
+  sampling), else the static map of a guidance.PixelMapScorer (`render`
   unread)."""
   if isinstance(scorer, ResidualSource):
     return residual_map(scorer, stats, view, render, photo, jnp.int32(0),
-                        jax.random.key(0), sem, alpha=alpha,
-                        drawn=drawn).transient
+                        jax.random.key(0), sem, alpha=alpha).transient
   return scorer.score_map(view)

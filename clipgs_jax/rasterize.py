@@ -51,9 +51,6 @@ class RenderOutput:
       evidence map, from the same pass; None when no map was given.
     probe_image: float [H, W], the evidence probe blended as a fourth
       colour channel over a zero background; None without a probe.
-    overlay_image: float [H, W], the per-Gaussian `overlay` values blended
-      as one more channel over a zero background (sum_j w_ij v_j); None
-      without an overlay.
     num_overflow: int32 [], tile-list entries dropped because the view's
       intersections exceeded the buffer, num_tiles x `tile_budget` (0 means
       the render is exact; one tile may hold any number of them).
@@ -66,7 +63,6 @@ class RenderOutput:
   contribution: Any
   evidence: Any
   probe_image: Any
-  overlay_image: Any
   num_overflow: Any
   max_tile_count: Any
 
@@ -292,8 +288,7 @@ def rasterize(proj: project_lib.Projected, cam: camera_lib.Camera,
               custom_vjp: bool = True,
               evidence_map: jax.Array | None = None,
               probe: jax.Array | None = None,
-              valid_size: jax.Array | None = None,
-              overlay: jax.Array | None = None) -> RenderOutput:
+              valid_size: jax.Array | None = None) -> RenderOutput:
   """Bins, sorts and blends projected splats into an image.
 
   `custom_vjp=False` swaps in `blend.blend_autodiff` (benchmarks and tests
@@ -307,10 +302,6 @@ def rasterize(proj: project_lib.Projected, cam: camera_lib.Camera,
   into `RenderOutput.probe_image`, so with probe = 0 and a loss term
   sum(stop_gradient(m) * probe_image) (worth 0) the gradient d loss /
   d probe_j is sum_i w_ij m_i, and no other gradient changes.
-  `overlay` (float [C]) is a per-Gaussian value blended as one more
-  channel, after the probe, into `RenderOutput.overlay_image`: sum_j w_ij
-  v_j at each pixel, the Gaussians' values as the view draws them. No
-  gradient flows into or out of it.
   `valid_size` (int [2], may be traced) is the width and height of the
   view's photo in the top-left corner of a larger canvas (the camera's
   size): pixels outside it are never blended (they show the background,
@@ -319,21 +310,15 @@ def rasterize(proj: project_lib.Projected, cam: camera_lib.Camera,
   grid, splats, tables, pix, pix_inside, num_overflow, max_count = (
       _prepare(proj, cam, cfg, valid_size))
   dtype = proj.means2d.dtype
-  extra = [(name, value) for name, value in
-           (("probe", probe), ("overlay", overlay)) if value is not None]
-  for name, value in extra:
-    if np.shape(value) != np.shape(proj.depths):
-      raise ValueError(f"{name} must be float [C] = "
-                       f"{list(np.shape(proj.depths))}, one value per "
-                       f"Gaussian, got {np.shape(value)}.")
-  if extra:
+  if probe is not None:
+    if np.shape(probe) != np.shape(proj.depths):
+      raise ValueError(f"probe must be float [C] = {list(np.shape(proj.depths))}"
+                       f", one value per Gaussian, got {np.shape(probe)}.")
     means2d, conics, colors, opacities, depths = splats
-    channels = [(jax.lax.stop_gradient(v) if name == "overlay" else v
-                 ).astype(dtype)[:, None] for name, v in extra]
-    colors = jnp.concatenate([colors, *channels], -1)
+    colors = jnp.concatenate([colors, probe.astype(dtype)[:, None]], -1)
     splats = (means2d, conics, colors, opacities, depths)
     background = jnp.concatenate([background.astype(dtype),
-                                  jnp.zeros((len(extra),), dtype)])
+                                  jnp.zeros((1,), dtype)])
   emap = None
   if evidence_map is not None:
     _check_evidence_map(evidence_map, cam)
@@ -348,17 +333,15 @@ def rasterize(proj: project_lib.Projected, cam: camera_lib.Camera,
   trans = _untile(trans, grid)
   alpha = 1.0 - trans
   image = _untile(color, grid) + trans[..., None] * background.astype(dtype)
-  extra_images = {name: image[..., 3 + k] for k, (name, _) in enumerate(extra)}
-  image = image[..., :3]
+  probe_image = None
+  if probe is not None:
+    image, probe_image = image[..., :3], image[..., 3]
   depth = _untile(depth, grid)
   has_alpha = alpha > 0
   depth = jnp.where(has_alpha, depth / jnp.where(has_alpha, alpha, 1.0), 0.0)
   return RenderOutput(
       image=image, alpha=alpha, depth=depth, visible=contrib > 0,
-      contribution=contrib, evidence=evidence,
-      probe_image=extra_images.get("probe"),
-      overlay_image=(None if overlay is None
-                     else jax.lax.stop_gradient(extra_images["overlay"])),
+      contribution=contrib, evidence=evidence, probe_image=probe_image,
       num_overflow=num_overflow.astype(jnp.int32),
       max_tile_count=max_count.astype(jnp.int32))
 
@@ -367,8 +350,7 @@ def render(params: gaussians.GaussianParams, alive: jax.Array,
            cam: camera_lib.Camera, background: jax.Array,
            cfg: config_lib.RenderConfig = config_lib.RenderConfig(),
            sh_degree: jax.Array | int | None = None,
-           evidence_map: jax.Array | None = None,
-           overlay: jax.Array | None = None) -> RenderOutput:
+           evidence_map: jax.Array | None = None) -> RenderOutput:
   """Renders the alive Gaussians seen from `cam`.
 
   Args:
@@ -381,8 +363,6 @@ def render(params: gaussians.GaussianParams, alive: jax.Array,
     evidence_map: float [H, W] in [0, 1] or None; if given, the output's
       `evidence` [C] holds each Gaussian's map-weighted blending weight
       (no gradient flows into the map).
-    overlay: float [C] or None: per-Gaussian values blended into the
-      output's `overlay_image` (rasterize).
   """
   gaussians.validate(params, alive)
   camera_lib.validate(cam)
@@ -394,7 +374,7 @@ def render(params: gaussians.GaussianParams, alive: jax.Array,
   proj = project_lib.project(params, alive, cam, near=cfg.near,
                              sh_degree=sh_degree)
   return rasterize(proj, cam, jnp.asarray(background), cfg,
-                   evidence_map=evidence_map, overlay=overlay)
+                   evidence_map=evidence_map)
 
 
 def blend_stats(proj: project_lib.Projected, cam: camera_lib.Camera,

@@ -155,13 +155,6 @@ def normalized_scores(stats: state_lib.SemanticStats) -> jax.Array:
                    0.0)
 
 
-def judged_scores(stats: state_lib.SemanticStats) -> jax.Array:
-  """Pixel evidence: s_j where the row has MIN_EVIDENCE_WEIGHT of evidence,
-  else 0 (not yet judged: treated as static)."""
-  return jnp.where(stats.weight >= MIN_EVIDENCE_WEIGHT,
-                   normalized_scores(stats), 0.0)
-
-
 def opacity_loss(stats: state_lib.SemanticStats, opacity_logits: jax.Array,
                  alive: jax.Array, weight: float) -> jax.Array:
   """Eqs. 11-12: lambda_c * mean over alive j of stop_grad(s_j) * alpha_j."""

@@ -140,9 +140,6 @@ def render_and_grad(state: state_lib.TrainState, scorer,
   # The residual map depends on the render: it cannot go into the render's
   # pass, so its per-Gaussian sums come from the backward pass (probe).
   dynamic = scorer is not None and sem.uses_residual
-  # The drawn-score gate blends each Gaussian's s_j into the same render.
-  overlay = (semantic_lib.judged_scores(state.semantic)
-             if dynamic and sem.residual_max_drawn_score > 0 else None)
   size, valid = (None, None) if canvas is None else canvas
   evidence_map = (jax.lax.stop_gradient(scorer.score_map(view))
                   if localized and not dynamic else None)
@@ -157,15 +154,13 @@ def render_and_grad(state: state_lib.TrainState, scorer,
     proj = proj.replace(means2d=proj.means2d + offset)
     out = rasterize.rasterize(proj, cam, bg, cfg.render,
                               evidence_map=evidence_map, probe=probe,
-                              valid_size=size, overlay=overlay)
+                              valid_size=size)
     weight, rmap = loss_weight, None
     if dynamic:
-      alpha = jax.lax.stop_gradient(out.alpha)
-      drawn = (None if overlay is None else map_sources.drawn_score(
-          jax.lax.stop_gradient(out.overlay_image), alpha))
       rmap = map_sources.residual_map(scorer, state.maps, view, out.image,
                                       target, step, sample_key, sem,
-                                      valid=valid, alpha=alpha, drawn=drawn)
+                                      valid=valid,
+                                      alpha=jax.lax.stop_gradient(out.alpha))
       if sem.loss_masking:
         weight = rmap.loss_weight
     loss, terms = losses.photometric(out.image, target,

@@ -196,39 +196,6 @@ class EvidenceProbeTest(parameterized.TestCase):
     np.testing.assert_allclose(out.image, forward.image, rtol=1e-6,
                                atol=1e-6)
 
-  def test_overlay_blends_values_and_changes_no_gradient(self):
-    cam = synthetic.front_camera(37, 29)
-    params, alive = _scene(120, 5)
-    proj = project.project(params, alive, cam, near=CFG.near, sh_degree=1)
-    values = jax.random.uniform(jax.random.key(3), (120,))
-
-    def loss(means2d, overlay):
-      out = rasterize.rasterize(proj.replace(means2d=means2d), cam, BG, CFG,
-                                probe=jnp.zeros((120,)), overlay=overlay)
-      return jnp.sum(out.image ** 2) + jnp.sum(out.overlay_image), out
-
-    # A constant overlay draws the alpha; any overlay is sum_j w_ij v_j,
-    # so it is linear in v.
-    ones = jax.jit(loss)(proj.means2d, jnp.ones((120,)))[1]
-    np.testing.assert_allclose(ones.overlay_image, ones.alpha, rtol=1e-5,
-                               atol=1e-6)
-    half = jax.jit(loss)(proj.means2d, 0.5 * values)[1]
-    (_, out), (g_means, g_overlay) = jax.jit(jax.value_and_grad(
-        loss, argnums=(0, 1), has_aux=True))(proj.means2d, values)
-    np.testing.assert_allclose(out.overlay_image, 2 * half.overlay_image,
-                               rtol=1e-5, atol=1e-6)
-    self.assertGreater(float(jnp.max(out.overlay_image)), 0.1)
-    # No gradient flows into or out of it: the loss's overlay term moves
-    # neither the values nor the splats.
-    np.testing.assert_array_equal(g_overlay, 0.0)
-    plain = lambda m: jnp.sum(rasterize.rasterize(
-        proj.replace(means2d=m), cam, BG, CFG).image ** 2)
-    np.testing.assert_allclose(g_means, jax.jit(jax.grad(plain))(proj.means2d),
-                               rtol=1e-4, atol=1e-6)
-    np.testing.assert_allclose(out.image, ones.image, rtol=1e-6, atol=1e-6)
-    with self.assertRaisesRegex(ValueError, "overlay must be float"):
-      rasterize.rasterize(proj, cam, BG, CFG, overlay=jnp.zeros((3,)))
-
   def test_probe_shape_error(self):
     cam = synthetic.front_camera(16, 16)
     params, alive = _scene(20, 0)

@@ -228,35 +228,6 @@ class SourceTest(absltest.TestCase):
     np.testing.assert_array_equal(regions.loss_weight,
                                   1.0 - regions.transient)
 
-  def test_drawn_gate_keeps_transients_only_over_judged_static_surface(self):
-    photo = jnp.zeros((16, 16, 3))
-    render = photo + 1.0                           # every pixel fails
-    stats = residual.ResidualState.initial().replace(
-        threshold=jnp.float32(0.5))
-    # What the render draws on the right is mostly light called transient
-    # where seen (scene not yet fit, or a ghost): no transient there.
-    drawn = jnp.full((16, 16), 0.2).at[:, 8:].set(0.8).at[:2, 8:].set(0.3)
-    args = (stats, jnp.int32(0), render, photo, jnp.int32(5),
-            jax.random.key(0))
-    sem = self._sem(residual_max_drawn_score=0.5)
-    pixels = map_sources.residual_map(
-        map_sources.ResidualSource(), *args, sem, drawn=drawn)
-    np.testing.assert_array_equal(pixels.transient, drawn < 0.5)
-    np.testing.assert_array_equal(pixels.loss_weight, 1.0 - pixels.transient)
-    # By region: the right region's majority is judged transient light.
-    labels = jnp.zeros((1, 16, 16), jnp.int32).at[0, :, 8:].set(1)
-    regions = map_sources.residual_map(
-        map_sources.ResidualSource(labels=labels, num_regions=2), *args,
-        sem, drawn=drawn)
-    np.testing.assert_array_equal(regions.transient[:, :8], 1.0)
-    np.testing.assert_array_equal(regions.transient[:, 8:], 0.0)
-    with self.assertRaisesRegex(ValueError, "needs the render's drawn"):
-      map_sources.residual_map(map_sources.ResidualSource(), *args, sem)
-    # drawn_score is the blended s over alpha, 0 where nothing is drawn.
-    np.testing.assert_allclose(
-        map_sources.drawn_score(jnp.array([0.3, 0.0, 0.2]),
-                                jnp.array([0.6, 0.0, 1.0])), [0.5, 0.0, 0.2])
-
   def test_stages_end_in_the_map(self):
     photo = jnp.zeros((16, 16, 3))
     render = photo.at[2:14, 2:14].set(1.0).at[6:10, 6:10].set(0.2)

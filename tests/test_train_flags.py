@@ -130,9 +130,7 @@ class SemanticCheckTest(parameterized.TestCase):
       ("max_prune_fraction", 0.0, "max_prune_fraction="),
       ("loss_masking", True, "loss_masking needs evidence='pixel'"),
       ("dense_input_size", 0, "dense_input_size="),
-      ("residual_min_alpha", 1.0, "residual_min_alpha="),
-      ("residual_max_drawn_score", 1.5, "residual_max_drawn_score="),
-      ("residual_max_drawn_score", 0.5, "needs scorer='residual'"))
+      ("residual_min_alpha", 1.0, "residual_min_alpha="))
   def test_names_the_field(self, field, value, message):
     sem = dataclasses.replace(ORACLE, **{field: value})
     with self.assertRaisesRegex(app.UsageError, message):

@@ -125,7 +125,7 @@ def loss_map_report(workdir: str, count: int = 3) -> dict:
   totals = np.zeros(3, np.int64)
   for i, (name, m, truth) in enumerate(evaluation.training_maps(
       state.params, state.alive, state.maps, scorer, views, cfg, degree,
-      by_stage, state.semantic)):
+      by_stage)):
     if by_stage:
       m = map_sources.in_stage_order(m)
       labels = (None if scorer.labels is None else

@@ -276,8 +276,7 @@ def transient_map(run: ViewedRun, scene, split: str, index: int
   needs_masks = sem.scorer in ("oracle", "uniform", "oracle_patch")
   if (split != "train" or not sem.localized or sem.scorer == "clip"
       or (needs_masks and masks is None)
-      or (sem.uses_residual and run.maps is None)
-      or (sem.residual_max_drawn_score > 0 and run.stats is None)):
+      or (sem.uses_residual and run.maps is None)):
     return None
   if sem.scorer == "uniform":
     return np.full(masks.shape[1:], np.mean(masks), np.float32)
@@ -285,8 +284,8 @@ def transient_map(run: ViewedRun, scene, split: str, index: int
   scorer = guidance.make_scorer(sem, one)
   n = run.params.means.shape[0]
   return evaluation.view_map(run.params, np.ones(n, bool), run.maps, scorer,
-                             one.train, 0, run.cfg, np.int32(run.degree),
-                             semantic=run.stats).astype(np.float32)
+                             one.train, 0, run.cfg,
+                             np.int32(run.degree)).astype(np.float32)
 
 
 def _one_view(vs, index: int):
