@@ -178,6 +178,8 @@ class SemanticConfig:
   #   of a 20k-step run (SLS's 3e-3); scaled_to divides it by the run's
   #   share of 20k, so the warm-up ends at the same share of any run
   #   (0.024 at 2,500 steps); 0: none
+  residual_start: int = 0      # the map is empty (no pixel masked, no
+  #   evidence) before this step (scaled like accumulate_start)
   residual_median_factor: float = 3.0  # threshold >= this x the median
   #   residual (0: the quantile alone; BUILD_NOTES.md, "Transient masks
   #   without an oracle": a quantile masks its share of a clean view too)
@@ -218,6 +220,8 @@ class SemanticConfig:
     return dataclasses.replace(
         self, accumulate_start=scale(self.accumulate_start),
         reg_start=scale(self.reg_start), prune_start=scale(self.prune_start),
+        residual_start=(scale(self.residual_start) if self.residual_start
+                        else 0),
         prune_every=scale(self.prune_every),
         residual_warmup=self.residual_warmup / f)
 

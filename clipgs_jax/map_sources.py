@@ -138,6 +138,9 @@ def residual_map(source: ResidualSource, stats: residual.ResidualState,
   kept = residual.sample_inliers(1.0 - transient, step, key,
                                  sem.residual_warmup)
   dropped = 1.0 - kept
+  if sem.residual_start:
+    on = (step >= sem.residual_start).astype(jnp.float32)
+    transient, dropped = transient * on, dropped * on
   for gate in _gates(source, view, sem, valid, alpha).values():
     transient, dropped = transient * gate, dropped * gate
   return ResidualMap(transient=transient, loss_weight=1.0 - dropped,
