@@ -178,8 +178,12 @@ class SemanticConfig:
   #   of a 20k-step run (SLS's 3e-3); scaled_to divides it by the run's
   #   share of 20k, so the warm-up ends at the same share of any run
   #   (0.024 at 2,500 steps); 0: none
-  residual_start: int = 0      # the map is empty (no pixel masked, no
-  #   evidence) before this step (scaled like accumulate_start)
+  residual_start: int = 0      # the training step uses no residual map
+  #   (no pixel masked, no evidence) before this step, scaled like
+  #   accumulate_start. Masking what the smeared early render misses keeps
+  #   static scene unfit (bonsai), and starting late lets transients be
+  #   fit (bird independent): BUILD_NOTES.md, "Transient masks without an
+  #   oracle". Mask quality reports the test's map at every step
   residual_median_factor: float = 3.0  # threshold >= this x the median
   #   residual (0: the quantile alone; BUILD_NOTES.md, "Transient masks
   #   without an oracle": a quantile masks its share of a clean view too)

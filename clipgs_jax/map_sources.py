@@ -138,13 +138,22 @@ def residual_map(source: ResidualSource, stats: residual.ResidualState,
   kept = residual.sample_inliers(1.0 - transient, step, key,
                                  sem.residual_warmup)
   dropped = 1.0 - kept
-  if sem.residual_start:
-    on = (step >= sem.residual_start).astype(jnp.float32)
-    transient, dropped = transient * on, dropped * on
   for gate in _gates(source, view, sem, valid, alpha).values():
     transient, dropped = transient * gate, dropped * gate
   return ResidualMap(transient=transient, loss_weight=1.0 - dropped,
                      residual=res)
+
+
+def held_until_start(rmap: ResidualMap, step: jax.Array,
+                     sem: config_lib.SemanticConfig) -> ResidualMap:
+  """`rmap` as the step that starts at `step` uses it: empty (no pixel
+  transient, every pixel in the loss) before sem.residual_start. The
+  evaluation maps (view_map, mask quality) are the test's own map."""
+  if not sem.residual_start:
+    return rmap
+  on = (step >= sem.residual_start).astype(jnp.float32)
+  return rmap.replace(transient=rmap.transient * on,
+                      loss_weight=1.0 - on * (1.0 - rmap.loss_weight))
 
 
 def residual_stages(source: ResidualSource, stats: residual.ResidualState,

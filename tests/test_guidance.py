@@ -118,6 +118,11 @@ class ScheduleTest(parameterized.TestCase):
     self.assertAlmostEqual(sem.residual_warmup, 0.03)
     self.assertEqual(config.SemanticConfig().scaled_to(2500).residual_warmup,
                      0.024)
+    # The residual map's start scales like the other starts; 0 stays 0.
+    self.assertEqual(config.SemanticConfig(residual_start=5000).scaled_to(
+        2000).residual_start, 500)
+    self.assertEqual(config.SemanticConfig(residual_start=0).scaled_to(
+        2000).residual_start, 0)
 
 
 class ScorerTest(absltest.TestCase):

@@ -183,6 +183,23 @@ class SourceTest(absltest.TestCase):
     np.testing.assert_array_equal(gated.transient[:, :8],
                                   plain.transient[:, :8])
 
+  def test_start_leaves_the_map_empty_before_it(self):
+    photo = jnp.zeros((16, 16, 3))
+    render = photo.at[4:12, 4:12].set(1.0)       # an 8x8 miss
+    stats = residual.ResidualState.initial().replace(
+        threshold=jnp.float32(0.5))
+    sem = self._sem(residual_start=100)
+    rmap = map_sources.residual_map(
+        map_sources.ResidualSource(), stats, jnp.int32(0), render, photo,
+        jnp.int32(99), jax.random.key(0), sem)
+    maps = [map_sources.held_until_start(rmap, jnp.int32(step), sem)
+            for step in (99, 100)]
+    np.testing.assert_array_equal(maps[0].transient, 0.0)
+    np.testing.assert_array_equal(maps[0].loss_weight, 1.0)
+    np.testing.assert_array_equal(maps[1].transient[5:11, 5:11], 1.0)
+    np.testing.assert_array_equal(maps[1].loss_weight,
+                                  1.0 - maps[1].transient)
+
   def test_alpha_gate_keeps_transients_only_on_rendered_surface(self):
     photo = jnp.zeros((16, 16, 3))
     render = photo.at[4:12, 4:12].set(1.0)       # an 8x8 miss
