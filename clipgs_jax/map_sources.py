@@ -238,8 +238,9 @@ def view_map(scorer, stats: residual.ResidualState | None, view: jax.Array,
   """float32 [H, W], the map m a training step on `view` would use now:
   the residual map for a ResidualSource (from `render` and `alpha`, the
   view rendered by the current model; m does not depend on the warm-up's
-  sampling), else the static map of a guidance.PixelMapScorer (`render`
-  unread)."""
+  sampling, and before sem.residual_start it is the test's map, which the
+  step does not use yet: held_until_start), else the static map of a
+  guidance.PixelMapScorer (`render` unread)."""
   if isinstance(scorer, ResidualSource):
     return residual_map(scorer, stats, view, render, photo, jnp.int32(0),
                         jax.random.key(0), sem, alpha=alpha).transient
