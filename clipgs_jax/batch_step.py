@@ -140,9 +140,10 @@ def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
     per_view = jax.tree.map(lambda x: x[None], per_view)
   elif vmap_lanes:
     outs, per_view = jax.vmap(one_view)(jnp.arange(local))
-    total = jax.tree.map(lambda x: jnp.sum(x, axis=0), outs)
-    dens = total[1].replace(max_radius=jnp.max(outs[1].max_radius, axis=0))
-    sums = (total[0], dens) + total[2:]
+    # Combined lane by lane in the scan's order, by the scan's rule.
+    sums = functools.reduce(
+        _combine, [jax.tree.map(lambda x, i=i: x[i], outs)
+                   for i in range(local)])
   else:
     # The device's views one after another: one compiled view, whatever
     # the batch.
