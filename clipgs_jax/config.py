@@ -197,11 +197,6 @@ class SemanticConfig:
   #   surface other views reconstruct; where the model has none, a high
   #   residual is static scene not yet fit, and masking it keeps it unfit
   #   (BUILD_NOTES.md, "Transient masks without an oracle")
-  residual_min_structure: float = 0.0  # a pixel is transient only where
-  #   1 - SSIM's contrast-structure term of render and photo exceeds this
-  #   (0: off; with features: in a region where most pixels' does). A
-  #   static surface the early fit draws too dark or too bright differs
-  #   from the photo by an offset, not a pattern (BUILD_NOTES.md)
   features: str = ""           # residual map: "" per pixel, or "alex" /
   #   "vgg": each photo's ImageNet-feature regions (features.py) take the
   #   majority verdict of the residual test inside them

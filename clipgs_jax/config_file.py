@@ -218,9 +218,6 @@ def _residual_problems(sem: config_lib.SemanticConfig) -> list[str]:
   if not 0.0 <= sem.residual_min_alpha < 1.0:
     problems.append(f"residual_min_alpha={sem.residual_min_alpha} is not in "
                     "[0, 1)")
-  if not 0.0 <= sem.residual_min_structure < 2.0:
-    problems.append(f"residual_min_structure={sem.residual_min_structure} "
-                    "is not in [0, 2)")
   if not sem.residual_warmup >= 0:
     problems.append(f"residual_warmup={sem.residual_warmup} must be >= 0")
   return problems

@@ -45,9 +45,7 @@ def _band(n: int, padding: str) -> np.ndarray:
   """float32 [n', n] matrix applying the 1D window along an axis of size n.
 
   Row i holds the window centred on input i; "same" truncates windows at
-  the borders (zero padding), "border" truncates and renormalises them (the
-  statistics of the part inside the image), "valid" keeps only the n - 10
-  full ones.
+  the borders (zero padding), "valid" keeps only the n - 10 full ones.
   """
   w = _window_1d(SSIM_WINDOW, SSIM_SIGMA)
   half = SSIM_WINDOW // 2
@@ -55,8 +53,6 @@ def _band(n: int, padding: str) -> np.ndarray:
   for i in range(n):
     m[i, i:i + SSIM_WINDOW] = w
   m = m[:, half:half + n]                     # drop the zero-padding columns
-  if padding == "border":
-    return m / m.sum(axis=1, keepdims=True)
   return m[half:n - half] if padding == "valid" else m
 
 
@@ -93,16 +89,6 @@ def ssim_map(a: jax.Array, b: jax.Array, padding: str = "valid"
                      f"{SSIM_WINDOW}x{SSIM_WINDOW}, got {a.shape[-3:-1]}; "
                      "use padding='same'.")
   batch = a.shape[:-3]
-  mu_a, mu_b, var_a, var_b, cov = _moments(a, b, padding)
-  num = (2 * mu_a * mu_b + SSIM_C1) * (2 * cov + SSIM_C2)
-  den = (mu_a * mu_a + mu_b * mu_b + SSIM_C1) * (var_a + var_b + SSIM_C2)
-  out = num / den
-  return out.reshape(batch + out.shape[1:])
-
-
-def _moments(a: jax.Array, b: jax.Array, padding: str):
-  """The windowed means, variances and covariance of [..., H, W, C] images,
-  each float [N, H', W', C] (the leading axes flattened)."""
   dtype = jnp.result_type(a, b, jnp.float32)
   a = a.reshape((-1,) + a.shape[-3:]).astype(dtype)
   b = b.reshape((-1,) + b.shape[-3:]).astype(dtype)
@@ -111,18 +97,10 @@ def _moments(a: jax.Array, b: jax.Array, padding: str):
   var_a = _blur(a * a, padding) - mu_a * mu_a
   var_b = _blur(b * b, padding) - mu_b * mu_b
   cov = _blur(a * b, padding) - mu_a * mu_b
-  return mu_a, mu_b, var_a, var_b, cov
-
-
-def structure_map(a: jax.Array, b: jax.Array) -> jax.Array:
-  """float [H, W], SSIM's contrast-structure term (2 cov + C2) / (var_a +
-  var_b + C2) of two [H, W, C] images, averaged over channels: SSIM
-  without its luminance term, each window cut to the image and
-  renormalised. Near 1 where the two agree up to a local brightness offset
-  (or are both flat), low where their local patterns differ."""
-  _, _, var_a, var_b, cov = _moments(a, b, "border")
-  cs = (2 * cov + SSIM_C2) / (var_a + var_b + SSIM_C2)
-  return jnp.mean(cs[0], axis=-1)
+  num = (2 * mu_a * mu_b + SSIM_C1) * (2 * cov + SSIM_C2)
+  den = (mu_a * mu_a + mu_b * mu_b + SSIM_C1) * (var_a + var_b + SSIM_C2)
+  out = num / den
+  return out.reshape(batch + out.shape[1:])
 
 
 def ssim(a: jax.Array, b: jax.Array, padding: str = "valid") -> jax.Array:

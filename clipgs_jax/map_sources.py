@@ -20,7 +20,6 @@ import numpy as np
 
 from clipgs_jax import config as config_lib
 from clipgs_jax import features
-from clipgs_jax import losses
 from clipgs_jax import residual
 
 # The combination rule: a pixel the residual test calls transient stays
@@ -29,8 +28,7 @@ SEMANTIC_GATE = 0.5
 
 # The residual map's steps in the order they apply (_test's, then _gates');
 # a map skips the steps its source and config do not have.
-STAGES = ("threshold", "rule", "vote", "semantic", "alpha", "structure",
-          "valid")
+STAGES = ("threshold", "rule", "vote", "semantic", "alpha", "valid")
 
 
 @flax.struct.dataclass
@@ -83,26 +81,13 @@ def _test(source: ResidualSource, stats: residual.ResidualState,
   return steps
 
 
-def _by_region(source: ResidualSource, view: jax.Array,
-               passed: jax.Array) -> jax.Array:
-  """float32 [H, W]: `passed` (1 = the pixel passes a gate) as each feature
-  region's majority, or as it is without regions."""
-  passed = passed.astype(jnp.float32)
-  if source.labels is None:
-    return passed
-  return 1.0 - features.vote(passed, source.labels[view], source.num_regions)
-
-
 def _gates(source: ResidualSource, view: jax.Array,
            sem: config_lib.SemanticConfig, valid: jax.Array | None,
-           alpha: jax.Array | None, render: jax.Array, photo: jax.Array
-           ) -> dict[str, jax.Array]:
+           alpha: jax.Array | None) -> dict[str, jax.Array]:
   """The gates a transient pixel must pass, float [H, W] in {0, 1} each
   (1 = it may be transient), in the order they apply: "semantic" (p >
-  SEMANTIC_GATE), "alpha" (the render covers it), "structure" (the render's
-  local pattern differs from the photo's: 1 - losses.structure_map >
-  sem.residual_min_structure), "valid" (inside the photo); alpha and
-  structure by pixel, or with feature regions by region majority."""
+  SEMANTIC_GATE), "alpha" (the render covers it, by pixel or by region),
+  "valid" (inside the photo)."""
   gates = {}
   if source.semantic is not None:
     gates["semantic"] = (source.semantic[view] > SEMANTIC_GATE).astype(
@@ -111,11 +96,11 @@ def _gates(source: ResidualSource, view: jax.Array,
     if alpha is None:
       raise ValueError("residual_map: semantic.residual_min_alpha = "
                        f"{sem.residual_min_alpha} needs the render's alpha.")
-    gates["alpha"] = _by_region(source, view, alpha > sem.residual_min_alpha)
-  if sem.residual_min_structure > 0:
-    differs = 1.0 - losses.structure_map(jax.lax.stop_gradient(render), photo)
-    gates["structure"] = _by_region(source, view,
-                                    differs > sem.residual_min_structure)
+    covered = (alpha > sem.residual_min_alpha).astype(jnp.float32)
+    if source.labels is not None:
+      covered = 1.0 - features.vote(covered, source.labels[view],
+                                    source.num_regions)
+    gates["alpha"] = covered
   if valid is not None:
     gates["valid"] = valid
   return gates
@@ -153,8 +138,7 @@ def residual_map(source: ResidualSource, stats: residual.ResidualState,
   kept = residual.sample_inliers(1.0 - transient, step, key,
                                  sem.residual_warmup)
   dropped = 1.0 - kept
-  for gate in _gates(source, view, sem, valid, alpha, render,
-                     photo).values():
+  for gate in _gates(source, view, sem, valid, alpha).values():
     transient, dropped = transient * gate, dropped * gate
   return ResidualMap(transient=transient, loss_weight=1.0 - dropped,
                      residual=res)
@@ -183,8 +167,7 @@ def residual_stages(source: ResidualSource, stats: residual.ResidualState,
   res = residual.residual(render, photo)
   stages = _test(source, stats, view, res, sem, None)
   transient = list(stages.values())[-1]
-  for name, gate in _gates(source, view, sem, None, alpha, render,
-                           photo).items():
+  for name, gate in _gates(source, view, sem, None, alpha).items():
     transient = stages[name] = transient * gate
   return stages
 

@@ -245,36 +245,6 @@ class SourceTest(absltest.TestCase):
     np.testing.assert_array_equal(regions.loss_weight,
                                   1.0 - regions.transient)
 
-  def test_structure_gate_drops_offsets_and_keeps_patterns(self):
-    # A textured photo; the render misses it by an offset on the left half
-    # (a static surface drawn too dark) and by a new pattern on the right
-    # (something the photo has that the scene does not).
-    grid = np.indices((16, 16)).sum(0) % 2
-    photo = jnp.asarray(np.repeat(0.3 + 0.4 * grid[..., None], 3, -1),
-                        jnp.float32)
-    render = photo.at[:, :8].add(-0.25).at[:, 8:].set(
-        jnp.asarray(0.7 - 0.4 * grid[:, 8:, None], jnp.float32))
-    stats = residual.ResidualState.initial().replace(
-        threshold=jnp.float32(0.2))
-    args = (stats, jnp.int32(0), render, photo, jnp.int32(5),
-            jax.random.key(0))
-    plain = map_sources.residual_map(map_sources.ResidualSource(), *args,
-                                     self._sem())
-    np.testing.assert_array_equal(plain.transient, 1.0)
-    gated = map_sources.residual_map(
-        map_sources.ResidualSource(), *args,
-        self._sem(residual_min_structure=0.5))
-    np.testing.assert_array_equal(gated.transient[:, :6], 0.0)
-    np.testing.assert_array_equal(gated.transient[:, 10:], 1.0)
-    np.testing.assert_array_equal(gated.loss_weight, 1.0 - gated.transient)
-    # With regions, each region takes its majority's verdict.
-    labels = jnp.zeros((1, 16, 16), jnp.int32).at[0, :, 7:].set(1)
-    regions = map_sources.residual_map(
-        map_sources.ResidualSource(labels=labels, num_regions=2), *args,
-        self._sem(residual_min_structure=0.5))
-    np.testing.assert_array_equal(regions.transient[:, :7], 0.0)
-    np.testing.assert_array_equal(regions.transient[:, 7:], 1.0)
-
   def test_stages_end_in_the_map(self):
     photo = jnp.zeros((16, 16, 3))
     render = photo.at[2:14, 2:14].set(1.0).at[6:10, 6:10].set(0.2)
