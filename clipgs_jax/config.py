@@ -197,8 +197,6 @@ class SemanticConfig:
   #   surface other views reconstruct; where the model has none, a high
   #   residual is static scene not yet fit, and masking it keeps it unfit
   #   (BUILD_NOTES.md, "Transient masks without an oracle")
-  residual_persist: bool = False  # a pixel is transient only where the
-  #   view's previous visit's map said so too (batch_size 1 only)
   features: str = ""           # residual map: "" per pixel, or "alex" /
   #   "vgg": each photo's ImageNet-feature regions (features.py) take the
   #   majority verdict of the residual test inside them

@@ -28,8 +28,7 @@ SEMANTIC_GATE = 0.5
 
 # The residual map's steps in the order they apply (_test's, then _gates');
 # a map skips the steps its source and config do not have.
-STAGES = ("threshold", "rule", "vote", "semantic", "alpha", "valid",
-          "persist")
+STAGES = ("threshold", "rule", "vote", "semantic", "alpha", "valid")
 
 
 @flax.struct.dataclass
@@ -59,13 +58,10 @@ class ResidualMap:
     loss_weight: float32 [H, W] in {0, 1}, the per-pixel weight of the
       photometric loss: 1 - m, with the warm-up's sampled pixels kept.
     residual: float32 [H, W], mean_c |render - photo|.
-    unpersisted: float32 [H, W], the map before the persistence gate (what
-      the view's next visit compares with).
   """
   transient: jax.Array
   loss_weight: jax.Array
   residual: jax.Array
-  unpersisted: jax.Array
 
 
 def _test(source: ResidualSource, stats: residual.ResidualState,
@@ -144,25 +140,8 @@ def residual_map(source: ResidualSource, stats: residual.ResidualState,
   dropped = 1.0 - kept
   for gate in _gates(source, view, sem, valid, alpha).values():
     transient, dropped = transient * gate, dropped * gate
-  unpersisted = transient
-  if stats.previous is not None:
-    # Persistence: transient only where the view's last visit said so too.
-    # A transient stays in its photo; static scene not yet fit changes
-    # from visit to visit as the other views fit it.
-    transient, dropped = (transient * stats.previous[view],
-                          dropped * stats.previous[view])
   return ResidualMap(transient=transient, loss_weight=1.0 - dropped,
-                     residual=res, unpersisted=unpersisted)
-
-
-def remember(stats: residual.ResidualState, view: jax.Array,
-             rmap: ResidualMap) -> residual.ResidualState:
-  """`stats` with view `view`'s map stored for its next visit (a no-op
-  without semantic.residual_persist)."""
-  if stats.previous is None:
-    return stats
-  return stats.replace(previous=stats.previous.at[view].set(
-      rmap.unpersisted))
+                     residual=res)
 
 
 def held_until_start(rmap: ResidualMap, step: jax.Array,
@@ -190,8 +169,6 @@ def residual_stages(source: ResidualSource, stats: residual.ResidualState,
   transient = list(stages.values())[-1]
   for name, gate in _gates(source, view, sem, None, alpha).items():
     transient = stages[name] = transient * gate
-  if stats.previous is not None:
-    stages["persist"] = transient * stats.previous[view]
   return stages
 
 

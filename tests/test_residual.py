@@ -245,23 +245,6 @@ class SourceTest(absltest.TestCase):
     np.testing.assert_array_equal(regions.loss_weight,
                                   1.0 - regions.transient)
 
-  def test_persistence_keeps_what_the_last_visit_also_called_transient(self):
-    photo = jnp.zeros((16, 16, 3))
-    render = photo.at[4:12, 4:12].set(1.0)       # an 8x8 miss
-    stats = residual.ResidualState.initial().replace(
-        threshold=jnp.float32(0.5), previous=jnp.zeros((2, 16, 16)))
-    args = (map_sources.ResidualSource(), stats, jnp.int32(1), render, photo,
-            jnp.int32(5), jax.random.key(0), self._sem(residual_persist=True))
-    first = map_sources.residual_map(*args)
-    np.testing.assert_array_equal(first.transient, 0.0)    # no last visit
-    np.testing.assert_array_equal(first.loss_weight, 1.0)
-    stats = map_sources.remember(stats, jnp.int32(1), first)
-    np.testing.assert_array_equal(stats.previous[0], 0.0)
-    np.testing.assert_array_equal(stats.previous[1], first.unpersisted)
-    again = map_sources.residual_map(args[0], stats, *args[2:])
-    np.testing.assert_array_equal(again.transient, first.unpersisted)
-    self.assertGreater(float(jnp.sum(again.transient)), 30.0)
-
   def test_stages_end_in_the_map(self):
     photo = jnp.zeros((16, 16, 3))
     render = photo.at[2:14, 2:14].set(1.0).at[6:10, 6:10].set(0.2)
