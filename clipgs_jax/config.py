@@ -197,8 +197,6 @@ class SemanticConfig:
   #   surface other views reconstruct; where the model has none, a high
   #   residual is static scene not yet fit, and masking it keeps it unfit
   #   (BUILD_NOTES.md, "Transient masks without an oracle")
-  residual_persist: int = 0   # a pixel is transient only where one of
-  #   the view's last N visits' maps said so too (0: off; batch_size 1)
   features: str = ""           # residual map: "" per pixel, or "alex" /
   #   "vgg": each photo's ImageNet-feature regions (features.py) take the
   #   majority verdict of the residual test inside them

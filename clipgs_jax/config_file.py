@@ -253,12 +253,6 @@ def check(values: dict | ml_collections.ConfigDict) -> config_lib.Config:
   _positive(t.steps > 0, "train.steps", t.steps, "must be positive")
   _positive(t.batch_size >= 1, "train.batch_size", t.batch_size,
             "must be positive (1: one view per step)")
-  _positive(0 <= cfg.semantic.residual_persist < 255,
-            "semantic.residual_persist", cfg.semantic.residual_persist,
-            "must be in [0, 254] (0: off)")
-  _positive(t.batch_size == 1 or not cfg.semantic.residual_persist,
-            "train.batch_size", t.batch_size,
-            "must be 1 with semantic.residual_persist")
   _positive(t.checkpoint_every >= 0, "train.checkpoint_every",
             t.checkpoint_every, "must be >= 0 (0: only at the end)")
   _positive(cfg.render.tile_budget > 0, "render.tile_budget",

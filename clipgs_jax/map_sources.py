@@ -28,11 +28,7 @@ SEMANTIC_GATE = 0.5
 
 # The residual map's steps in the order they apply (_test's, then _gates');
 # a map skips the steps its source and config do not have.
-# ResidualState.age of a pixel no visit has called transient.
-NEVER = 255
-
-STAGES = ("threshold", "rule", "vote", "semantic", "alpha", "valid",
-          "persist")
+STAGES = ("threshold", "rule", "vote", "semantic", "alpha", "valid")
 
 
 @flax.struct.dataclass
@@ -62,13 +58,10 @@ class ResidualMap:
     loss_weight: float32 [H, W] in {0, 1}, the per-pixel weight of the
       photometric loss: 1 - m, with the warm-up's sampled pixels kept.
     residual: float32 [H, W], mean_c |render - photo|.
-    unpersisted: float32 [H, W], the map before the persistence gate (what
-      the view's next visit compares with).
   """
   transient: jax.Array
   loss_weight: jax.Array
   residual: jax.Array
-  unpersisted: jax.Array
 
 
 def _test(source: ResidualSource, stats: residual.ResidualState,
@@ -147,34 +140,8 @@ def residual_map(source: ResidualSource, stats: residual.ResidualState,
   dropped = 1.0 - kept
   for gate in _gates(source, view, sem, valid, alpha).values():
     transient, dropped = transient * gate, dropped * gate
-  unpersisted = transient
-  if stats.age is not None:
-    # Persistence: transient only where one of the view's last visits said
-    # so too. A transient stays in its photo; static scene not yet fit
-    # changes from visit to visit as the other views fit it.
-    recent = _recent(stats, view, sem)
-    transient, dropped = transient * recent, dropped * recent
   return ResidualMap(transient=transient, loss_weight=1.0 - dropped,
-                     residual=res, unpersisted=unpersisted)
-
-
-def _recent(stats: residual.ResidualState, view: jax.Array,
-            sem: config_lib.SemanticConfig) -> jax.Array:
-  """float32 [H, W]: 1 where one of view `view`'s last
-  sem.residual_persist maps called the pixel transient."""
-  return (stats.age[view] <= sem.residual_persist).astype(jnp.float32)
-
-
-def remember(stats: residual.ResidualState, view: jax.Array,
-             rmap: ResidualMap) -> residual.ResidualState:
-  """`stats` with view `view`'s map counted for its next visits (a no-op
-  without semantic.residual_persist)."""
-  if stats.age is None:
-    return stats
-  age = stats.age[view]
-  age = jnp.where(rmap.unpersisted > 0.5, jnp.uint8(1),
-                  jnp.minimum(age, NEVER - 1) + jnp.uint8(1))
-  return stats.replace(age=stats.age.at[view].set(age))
+                     residual=res)
 
 
 def held_until_start(rmap: ResidualMap, step: jax.Array,
@@ -202,8 +169,6 @@ def residual_stages(source: ResidualSource, stats: residual.ResidualState,
   transient = list(stages.values())[-1]
   for name, gate in _gates(source, view, sem, None, alpha).items():
     transient = stages[name] = transient * gate
-  if stats.age is not None:
-    stages["persist"] = transient * _recent(stats, view, sem)
   return stages
 
 

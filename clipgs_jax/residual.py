@@ -44,14 +44,9 @@ class ResidualState:
     histogram: float32 [HISTOGRAM_BINS], decayed counts of the residuals of
       past steps' pixels over [0, 1].
     threshold: float32 [], the inlier threshold the next step uses.
-    age: None, or uint8 [V, H, W]: for each training view's pixels, how
-      many visits ago the view's map (before the persistence gate) last
-      called the pixel transient (semantic.residual_persist); NEVER if
-      none did.
   """
   histogram: jax.Array
   threshold: jax.Array
-  age: jax.Array | None = None
 
   @classmethod
   def initial(cls) -> "ResidualState":
@@ -118,7 +113,7 @@ def update(state: ResidualState, res: jax.Array | None = None, *,
                             median_factor * _quantile(cumulative, 0.5))
   if minimum > 0:
     threshold = jnp.maximum(threshold, jnp.float32(minimum))
-  return state.replace(histogram=histogram, threshold=threshold)
+  return ResidualState(histogram=histogram, threshold=threshold)
 
 
 def _box3(x: jax.Array) -> jax.Array:

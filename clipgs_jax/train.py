@@ -19,7 +19,6 @@ from clipgs_jax import gaussians
 from clipgs_jax import guidance
 from clipgs_jax import initialize
 from clipgs_jax import loop
-from clipgs_jax import map_sources
 from clipgs_jax import metrics as metrics_lib
 from clipgs_jax import optim
 from clipgs_jax import residual as residual_lib
@@ -145,7 +144,6 @@ def train_step(state: state_lib.TrainState, batch: Batch, scorer=None, *,
                    semantic_loss=vp.terms["semantic_loss"])
   if vp.rmap is not None:
     maps = view_lib.update_maps(maps, cfg.semantic, res=vp.rmap.residual)
-    maps = map_sources.remember(maps, view, vp.rmap)
     metrics["residual_threshold"] = state.maps.threshold
   new_state = state.replace(params=params, opt_state=opt_state,
                             densify=stats, semantic=semantic_stats,
@@ -193,12 +191,7 @@ def initial_state(cfg: config_lib.Config, scene) -> state_lib.TrainState:
   params, alive = initialize.initialize(
       points, getattr(scene, "point_colors", None), centers, cfg.gaussians,
       seed=cfg.train.seed)
-  state = init_state(cfg, params, alive)
-  if cfg.semantic.uses_residual and cfg.semantic.residual_persist:
-    shape = np.shape(scene.train.images)[:3]
-    state = state.replace(maps=state.maps.replace(
-        age=jnp.full(shape, map_sources.NEVER, jnp.uint8)))
-  return state
+  return init_state(cfg, params, alive)
 
 
 def batched(cfg: config_lib.Config, scene) -> bool:

@@ -245,41 +245,6 @@ class SourceTest(absltest.TestCase):
     np.testing.assert_array_equal(regions.loss_weight,
                                   1.0 - regions.transient)
 
-  def _visits(self, persist, misses):
-    """The maps of view 1's visits under semantic.residual_persist =
-    `persist`, the render missing an 8x8 square where `misses` is true."""
-    photo = jnp.zeros((16, 16, 3))
-    stats = residual.ResidualState.initial().replace(
-        threshold=jnp.float32(0.5),
-        age=jnp.full((2, 16, 16), map_sources.NEVER, jnp.uint8))
-    sem = self._sem(residual_persist=persist)
-    maps = []
-    for miss in misses:
-      render = photo.at[4:12, 4:12].set(1.0) if miss else photo
-      rmap = map_sources.residual_map(
-          map_sources.ResidualSource(), stats, jnp.int32(1), render, photo,
-          jnp.int32(5), jax.random.key(0), sem)
-      stats = map_sources.remember(stats, jnp.int32(1), rmap)
-      maps.append(rmap)
-    np.testing.assert_array_equal(stats.age[0], map_sources.NEVER)
-    return maps
-
-  def test_persistence_keeps_what_the_last_visit_also_called_transient(self):
-    first, again = self._visits(1, [True, True])
-    np.testing.assert_array_equal(first.transient, 0.0)    # no last visit
-    np.testing.assert_array_equal(first.loss_weight, 1.0)
-    self.assertGreater(float(jnp.sum(first.unpersisted)), 30.0)
-    np.testing.assert_array_equal(again.transient, first.unpersisted)
-    np.testing.assert_array_equal(again.loss_weight, 1.0 - again.transient)
-
-  def test_persistence_over_two_visits_bridges_one_clean_visit(self):
-    miss = self._visits(1, [True, True, True])[0].unpersisted
-    for persist, expected in ((1, 0.0), (2, miss)):
-      *_, last = self._visits(persist, [True, False, True])
-      np.testing.assert_array_equal(last.transient, expected)
-    *_, last = self._visits(2, [True, False, False, True])
-    np.testing.assert_array_equal(last.transient, 0.0)
-
   def test_stages_end_in_the_map(self):
     photo = jnp.zeros((16, 16, 3))
     render = photo.at[2:14, 2:14].set(1.0).at[6:10, 6:10].set(0.2)
