@@ -197,10 +197,6 @@ class SemanticConfig:
   #   surface other views reconstruct; where the model has none, a high
   #   residual is static scene not yet fit, and masking it keeps it unfit
   #   (BUILD_NOTES.md, "Transient masks without an oracle")
-  evidence_halflife: int = 0   # pixel evidence fades: the past acc and
-  #   weight halve every this many steps, scaled like accumulate_start, so
-  #   s_j follows the recent maps rather than the early ones drawn from a
-  #   smeared render (0: eq. 9's plain sum)
   features: str = ""           # residual map: "" per pixel, or "alex" /
   #   "vgg": each photo's ImageNet-feature regions (features.py) take the
   #   majority verdict of the residual test inside them
@@ -230,8 +226,6 @@ class SemanticConfig:
         reg_start=scale(self.reg_start), prune_start=scale(self.prune_start),
         residual_start=(scale(self.residual_start) if self.residual_start
                         else 0),
-        evidence_halflife=(scale(self.evidence_halflife)
-                           if self.evidence_halflife else 0),
         prune_every=scale(self.prune_every),
         residual_warmup=self.residual_warmup / f)
 

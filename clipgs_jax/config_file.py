@@ -169,7 +169,7 @@ def _semantic_problems(sem: config_lib.SemanticConfig) -> list[str]:
                     "guidance nothing to do; use scorer='off' for vanilla "
                     "3DGS")
   for name in ("accumulate_start", "reg_start", "prune_start",
-               "reset_quiet", "residual_start", "evidence_halflife"):
+               "reset_quiet", "residual_start"):
     if getattr(sem, name) < 0:
       problems.append(f"{name}={getattr(sem, name)} must be >= 0")
   for name in ("prune_every", "score_every"):

@@ -124,25 +124,6 @@ def accumulate_pixel(stats: state_lib.SemanticStats, evidence: jax.Array,
       n=stats.n + on * visible.astype(dtype))
 
 
-def add_evidence(stats: state_lib.SemanticStats,
-                 increment: state_lib.SemanticStats,
-                 halflife: int) -> state_lib.SemanticStats:
-  """The run's statistics after one step: stats + increment.
-
-  With halflife > 0 the past acc and weight first fade by 0.5 ** (1 /
-  halflife), so s_j = acc_j / weight_j is a mean over the views that
-  weighs a view by 2 ** (-its age in steps / halflife): the maps drawn
-  from an early, smeared render stop deciding the opacity loss and the
-  prune. n still counts every view (eq. 13's n_min).
-  """
-  if not halflife:
-    return jax.tree.map(jnp.add, stats, increment)
-  keep = jnp.asarray(0.5 ** (1.0 / halflife), stats.acc.dtype)
-  return stats.replace(acc=keep * stats.acc + increment.acc,
-                       weight=keep * stats.weight + increment.weight,
-                       n=stats.n + increment.n)
-
-
 def agreement(render: jax.Array, photo: jax.Array,
               tolerance: float = AGREEMENT_TOLERANCE) -> jax.Array:
   """float [H, W] in [0, 1]: 1 - mean_c |render - photo| / tolerance,

@@ -123,11 +123,6 @@ class ScheduleTest(parameterized.TestCase):
         2000).residual_start, 500)
     self.assertEqual(config.SemanticConfig(residual_start=0).scaled_to(
         2000).residual_start, 0)
-    # So does the evidence's half-life; 0 (no fading) stays 0.
-    self.assertEqual(config.SemanticConfig(evidence_halflife=1000).scaled_to(
-        2500).evidence_halflife, 125)
-    self.assertEqual(config.SemanticConfig().scaled_to(
-        2500).evidence_halflife, 0)
 
 
 class ScorerTest(absltest.TestCase):

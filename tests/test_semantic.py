@@ -163,26 +163,6 @@ class NormalizeLossPruneTest(parameterized.TestCase):
     np.testing.assert_allclose(stats.weight, [4.0, 2.0, 0.0])
     np.testing.assert_allclose(stats.n, [2.0, 2.0, 0.0])
 
-  def test_fading_evidence_follows_the_recent_views(self):
-    def inc(evidence, contribution):
-      return semantic.accumulate_pixel(
-          state_lib.SemanticStats.zeros(1), jnp.array([evidence]),
-          jnp.array([contribution]), jnp.array([contribution > 0]),
-          jnp.bool_(True))
-    early, late = inc(1.0, 1.0), inc(0.0, 1.0)   # transient, then static
-    plain, faded = early, early
-    for _ in range(4):
-      plain = semantic.add_evidence(plain, late, halflife=0)
-      faded = semantic.add_evidence(faded, late, halflife=2)
-    # Plain: 1 of 5 views. Faded: the first view is 4 steps (two
-    # half-lives) old, weight 1/4, beside 1 + 2^-1/2 + 2^-1 + 2^-3/2.
-    np.testing.assert_allclose(semantic.normalized_scores(plain), [0.2])
-    recent = sum(2.0 ** (-k / 2) for k in range(4))
-    np.testing.assert_allclose(semantic.normalized_scores(faded),
-                               [0.25 / (0.25 + recent)], rtol=1e-6)
-    np.testing.assert_allclose(faded.weight, [0.25 + recent], rtol=1e-6)
-    np.testing.assert_array_equal(faded.n, plain.n)
-
   def test_agreement(self):
     photo = jnp.zeros((1, 4, 3))
     render = photo.at[0, 1].set(0.05).at[0, 2].set(0.1).at[0, 3].set(0.5)
