@@ -191,6 +191,9 @@ class SemanticConfig:
   #   colour error (0: none). Relative floors stay at the fit's own error
   #   level, so a clean view stays masked where the fit lags; an absolute
   #   one lets a clean view's map shrink as the fit improves (BUILD_NOTES)
+  residual_outlier_weight: float = 0.0  # the photometric loss's weight of
+  #   a transient pixel (0: masked out). Above 0, static scene that the
+  #   map calls transient while it is not yet fit still gets a gradient
   residual_min_alpha: float = 0.9  # a pixel is transient only where the
   #   render's alpha exceeds this (0: everywhere; with features: only in a
   #   region where most pixels' alpha does). A transient hides a
