@@ -194,6 +194,9 @@ class SemanticConfig:
   residual_outlier_weight: float = 0.0  # the photometric loss's weight of
   #   a transient pixel (0: masked out). Above 0, static scene that the
   #   map calls transient while it is not yet fit still gets a gradient
+  residual_densify_share: bool = False  # densification counts a view by
+  #   the share of a row's footprint in the loss, not once: a row the map
+  #   masks in some views keeps the mean gradient of the views that fit it
   residual_min_alpha: float = 0.9  # a pixel is transient only where the
   #   render's alpha exceeds this (0: everywhere; with features: only in a
   #   region where most pixels' alpha does). A transient hides a
