@@ -183,21 +183,6 @@ class SourceTest(absltest.TestCase):
     np.testing.assert_array_equal(gated.transient[:, :8],
                                   plain.transient[:, :8])
 
-  def test_outlier_weight_keeps_transient_pixels_in_the_loss(self):
-    photo = jnp.zeros((16, 16, 3))
-    render = photo.at[4:12, 4:12].set(1.0)       # an 8x8 miss
-    stats = residual.ResidualState.initial().replace(
-        threshold=jnp.float32(0.5))
-    args = (map_sources.ResidualSource(), stats, jnp.int32(0), render, photo,
-            jnp.int32(5), jax.random.key(0))
-    hard = map_sources.residual_map(*args, self._sem())
-    soft = map_sources.residual_map(
-        *args, self._sem(residual_outlier_weight=0.25))
-    np.testing.assert_array_equal(soft.transient, hard.transient)
-    np.testing.assert_array_equal(soft.loss_weight[5:11, 5:11], 0.25)
-    np.testing.assert_array_equal(soft.loss_weight,
-                                  1.0 - 0.75 * hard.transient)
-
   def test_start_leaves_the_map_empty_before_it(self):
     photo = jnp.zeros((16, 16, 3))
     render = photo.at[4:12, 4:12].set(1.0)       # an 8x8 miss
