@@ -191,9 +191,6 @@ class SemanticConfig:
   #   colour error (0: none). Relative floors stay at the fit's own error
   #   level, so a clean view stays masked where the fit lags; an absolute
   #   one lets a clean view's map shrink as the fit improves (BUILD_NOTES)
-  residual_outlier_weight: float = 0.0  # the photometric loss's weight of
-  #   a transient pixel (0: masked out). Above 0, static scene that the
-  #   map calls transient while it is not yet fit still gets a gradient
   residual_densify_share: bool = False  # densification counts a view by
   #   the share of a row's footprint in the loss, not once: a row the map
   #   masks in some views keeps the mean gradient of the views that fit it

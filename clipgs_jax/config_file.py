@@ -215,9 +215,6 @@ def _residual_problems(sem: config_lib.SemanticConfig) -> list[str]:
   if not 0.0 <= sem.residual_min_threshold < 1.0:
     problems.append(f"residual_min_threshold={sem.residual_min_threshold} "
                     "is not in [0, 1)")
-  if not 0.0 <= sem.residual_outlier_weight < 1.0:
-    problems.append(f"residual_outlier_weight={sem.residual_outlier_weight} "
-                    "is not in [0, 1)")
   if not 0.0 <= sem.residual_min_alpha < 1.0:
     problems.append(f"residual_min_alpha={sem.residual_min_alpha} is not in "
                     "[0, 1)")

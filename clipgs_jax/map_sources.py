@@ -55,9 +55,8 @@ class ResidualMap:
 
   Attributes:
     transient: float32 [H, W] in {0, 1}, the map m (1 = transient).
-    loss_weight: float32 [H, W] in [0, 1], the per-pixel weight of the
-      photometric loss: 1 - m, with the warm-up's sampled pixels kept
-      (a masked pixel weighs sem.residual_outlier_weight, not 0).
+    loss_weight: float32 [H, W] in {0, 1}, the per-pixel weight of the
+      photometric loss: 1 - m, with the warm-up's sampled pixels kept.
     residual: float32 [H, W], mean_c |render - photo|.
   """
   transient: jax.Array
@@ -141,9 +140,7 @@ def residual_map(source: ResidualSource, stats: residual.ResidualState,
   dropped = 1.0 - kept
   for gate in _gates(source, view, sem, valid, alpha).values():
     transient, dropped = transient * gate, dropped * gate
-  outlier = sem.residual_outlier_weight
-  return ResidualMap(transient=transient,
-                     loss_weight=1.0 - (1.0 - outlier) * dropped,
+  return ResidualMap(transient=transient, loss_weight=1.0 - dropped,
                      residual=res)
 
 
