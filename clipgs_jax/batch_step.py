@@ -118,7 +118,7 @@ def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
     seen = densify.on_screen(proj, w, h) & state.alive
     dens = densify.accumulate(state_lib.DensifyStats.zeros(capacity),
                               vp.grad2d, seen, densify.screen_radius(proj),
-                              w, h, view_lib.fitted_share(vp, cfg))
+                              w, h)
     metrics = {"loss": vp.loss, "l1": vp.terms["l1"],
                "ssim": vp.terms["ssim"],
                "psnr": metrics_lib.psnr(vp.out.image, target, valid),

@@ -191,9 +191,6 @@ class SemanticConfig:
   #   colour error (0: none). Relative floors stay at the fit's own error
   #   level, so a clean view stays masked where the fit lags; an absolute
   #   one lets a clean view's map shrink as the fit improves (BUILD_NOTES)
-  residual_densify_share: bool = False  # densification counts a view by
-  #   the share of a row's footprint in the loss, not once: a row the map
-  #   masks in some views keeps the mean gradient of the views that fit it
   residual_min_alpha: float = 0.9  # a pixel is transient only where the
   #   render's alpha exceeds this (0: everywhere; with features: only in a
   #   region where most pixels' alpha does). A transient hides a

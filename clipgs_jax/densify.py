@@ -51,8 +51,8 @@ def on_screen(proj: project_lib.Projected, width: int, height: int
 
 
 def accumulate(stats: state_lib.DensifyStats, grad_means2d: jax.Array,
-               seen: jax.Array, radius: jax.Array, width: int, height: int,
-               share: jax.Array | None = None) -> state_lib.DensifyStats:
+               seen: jax.Array, radius: jax.Array, width: int, height: int
+               ) -> state_lib.DensifyStats:
   """Adds one view's positional gradients to the statistics.
 
   Args:
@@ -63,17 +63,12 @@ def accumulate(stats: state_lib.DensifyStats, grad_means2d: jax.Array,
     width, height: image size; the gradient is converted to normalised
       device coordinates (pixel = (ndc + 1) * size / 2 - 0.5), where the
       3DGS threshold 2e-4 is defined: d/d ndc = d/d pixel * size / 2.
-    share: None (each seen row counts the view once), or float [C] in
-      [0, 1], the share of each row's footprint that the view's loss
-      fits: the view counts that much, so a view that masks a row out of
-      its loss does not dilute the row's mean gradient.
   """
   scale = jnp.array([0.5 * width, 0.5 * height], grad_means2d.dtype)
   norm = jnp.linalg.norm(grad_means2d * scale, axis=-1)
   return state_lib.DensifyStats(
       grad_accum=stats.grad_accum + jnp.where(seen, norm, 0.0),
-      denom=stats.denom + (seen.astype(jnp.float32) if share is None
-                           else jnp.where(seen, share, 0.0)),
+      denom=stats.denom + seen.astype(jnp.float32),
       max_radius=jnp.where(seen, jnp.maximum(stats.max_radius, radius),
                            stats.max_radius))
 

@@ -122,8 +122,7 @@ def train_step(state: state_lib.TrainState, batch: Batch, scorer=None, *,
   proj = jax.lax.stop_gradient(vp.proj)
   seen = densify.on_screen(proj, width, height) & state.alive
   stats = densify.accumulate(state.densify, vp.grad2d, seen,
-                             densify.screen_radius(proj), width, height,
-                             view_lib.fitted_share(vp, cfg))
+                             densify.screen_radius(proj), width, height)
   metrics = {
       "loss": vp.loss, "l1": vp.terms["l1"], "ssim": vp.terms["ssim"],
       "psnr": metrics_lib.psnr(out.image, target),

@@ -192,20 +192,6 @@ def render_and_grad(state: state_lib.TrainState, scorer,
                   evidence_map)
 
 
-def fitted_share(vp: ViewPass, cfg: config_lib.Config) -> jax.Array | None:
-  """float [C]: the share of each row's footprint the residual-masked loss
-  fits, 1 - sum_i w_ij m_i / sum_i w_ij (1 where it draws nothing), for
-  densify.accumulate; None unless sem.residual_densify_share."""
-  sem = cfg.semantic
-  if not (sem.residual_densify_share and vp.probe_grad is not None
-          and sem.loss_masking):
-    return None
-  contrib = vp.out.contribution
-  drawn = contrib > 0
-  masked = vp.probe_grad / jnp.where(drawn, contrib, 1.0)
-  return jnp.where(drawn, jnp.clip(1.0 - masked, 0.0, 1.0), 1.0)
-
-
 def reproduced_evidence(due, proj, cam, bg, cfg, evidence_map, image,
                         target):
   """float [C], sum_i w_ij m_i a_i with a = semantic.agreement(render, photo).

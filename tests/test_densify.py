@@ -241,13 +241,6 @@ class StatisticsTest(absltest.TestCase):
                                width=100, height=40)
     np.testing.assert_array_equal(stats.denom, [2, 2, 0])
     np.testing.assert_array_equal(stats.max_radius, [4, 3, 0])
-    # A view that fits a quarter of row 0's footprint counts a quarter.
-    stats = densify.accumulate(stats, g, seen, jnp.array([1.0, 3.0, 9.0]),
-                               width=100, height=40,
-                               share=jnp.array([0.25, 1.0, 0.5]))
-    np.testing.assert_array_equal(stats.denom, [2.25, 3, 0])
-    np.testing.assert_allclose(stats.grad_accum, [4.5e-4, 6e-5, 0],
-                               rtol=1e-6)
 
   def test_screen_radius_is_three_sigma(self):
     # Covariance [[9, 2], [2, 4]] has eigenvalues 6.5 +- sqrt(2.5^2 + 4):
