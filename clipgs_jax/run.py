@@ -141,8 +141,10 @@ def semantic_label(sem: config_lib.SemanticConfig) -> str:
     variant += ", no pruning"
   if sem.localized:
     if sem.scorer == "residual":
-      return (f"residual map ({sem.residual_rule}, no weights, no oracle)"
-              + variant)
+      regions = (f", {sem.features} feature regions" if sem.features
+                 else "")
+      return (f"residual map ({sem.residual_rule}{regions}, no weights, "
+              "no oracle)" + variant)
     if sem.residual:
       variant += f", gating the residual map ({sem.residual_rule})"
     if sem.scorer == "oracle_patch":

@@ -275,18 +275,21 @@ class EndToEndTest(absltest.TestCase):
     self.assertEqual(summary["vanilla"]["label"], "vanilla 3DGS")
     # The row the demo shows needs nothing but the photos; the reference
     # says it reads the ground truth.
-    self.assertIn("residual map", summary["residual"]["label"])
+    self.assertIn("residual map (sls, alex feature regions",
+                  summary["residual"]["label"])
     self.assertNotIn("ORACLE", summary["residual"]["label"])
     self.assertIn("ORACLE-PIXEL", summary["oracle_pixel_masked"]["label"])
-    scorers = {}
+    scorers, cfg_of = {}, {}
     for row in ("residual", "oracle_pixel_masked"):
       with open(os.path.join(root, row, "config.json")) as f:
-        cfg = json.load(f)
+        cfg = cfg_of[row] = json.load(f)
       self.assertEqual(cfg["train"]["checkpoint_every"], 10)
       self.assertTrue(cfg["semantic"]["loss_masking"])
       scorers[row] = cfg["semantic"]["scorer"]
     self.assertEqual(scorers, {"residual": "residual",
                                "oracle_pixel_masked": "oracle"})
+    # The table's best row that needs only the photos: regions voted.
+    self.assertEqual(cfg_of["residual"]["semantic"]["features"], "alex")
     # One row (it used to stop with an IndexError after training): its
     # finished run is not trained again, and the comparison shows it alone.
     cd.sweep.rows = "residual"
