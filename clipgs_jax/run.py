@@ -140,13 +140,13 @@ def semantic_label(sem: config_lib.SemanticConfig) -> str:
   if not sem.prune:
     variant += ", no pruning"
   if sem.localized:
+    # The residual test's rule, and the regions that vote it if any.
+    rule = sem.residual_rule + (f", {sem.features} feature regions"
+                                if sem.features else "")
     if sem.scorer == "residual":
-      regions = (f", {sem.features} feature regions" if sem.features
-                 else "")
-      return (f"residual map ({sem.residual_rule}{regions}, no weights, "
-              "no oracle)" + variant)
+      return f"residual map ({rule}, no weights, no oracle)" + variant
     if sem.residual:
-      variant += f", gating the residual map ({sem.residual_rule})"
+      variant += f", gating the residual map ({rule})"
     if sem.scorer == "oracle_patch":
       return ("localized CLIP-GS machinery, ORACLE-PATCH scorer "
               "(ground-truth masks at dense CLIP's patch grid, not CLIP)"

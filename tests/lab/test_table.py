@@ -178,6 +178,26 @@ class FormatTest(absltest.TestCase):
       self.assertEqual(cfg.semantic.prune_start, sem.prune_start)
 
 
+  def test_residual_labels_name_the_regions(self):
+    # A map voted over feature regions says so, alone or gated by a
+    # semantic map (the demo's row with --clip_weights); one without
+    # regions does not.
+    demo = config_file.load_file(
+        os.path.join(config_file.CONFIGS_DIR, "demo.py"))
+    gated = sweep.row_config(
+        demo, "residual", None,
+        **demo.sweep.clip_overrides.residual.to_dict()).semantic
+    self.assertIn("gating the residual map (sls, alex feature regions)",
+                  run_lib.semantic_label(gated))
+    self.assertIn("residual map (sls, alex feature regions, no weights",
+                  run_lib.semantic_label(
+                      _row_cfg("residual_features").semantic))
+    self.assertNotIn("regions", run_lib.semantic_label(
+        _row_cfg("residual").semantic))
+    self.assertNotIn("regions", run_lib.semantic_label(
+        _row_cfg("oracle_patch_residual").semantic))
+
+
 class ConfigChangesTest(absltest.TestCase):
 
   def test_names_what_differs(self):
