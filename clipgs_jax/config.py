@@ -200,6 +200,8 @@ class SemanticConfig:
   features: str = ""           # residual map: "" per pixel, or "alex" /
   #   "vgg": each photo's ImageNet-feature regions (features.py) take the
   #   majority verdict of the residual test inside them
+  residual_vote: float = 0.5   # features: a region is transient when at
+  #   least this share of its pixels fail the residual test (SLS-agg: 0.5)
 
   @property
   def enabled(self) -> bool:

@@ -201,6 +201,8 @@ def _residual_problems(sem: config_lib.SemanticConfig) -> list[str]:
   if sem.features and not sem.uses_residual:
     problems.append("features votes the residual test over regions: it "
                     "needs scorer='residual' or residual=True")
+  if not 0.0 < sem.residual_vote <= 1.0:
+    problems.append(f"residual_vote={sem.residual_vote} is not in (0, 1]")
   if sem.residual_rule not in residual.RULES:
     problems.append(f"residual_rule={sem.residual_rule!r} is not one of "
                     f"{', '.join(residual.RULES)}")

@@ -77,7 +77,7 @@ def _test(source: ResidualSource, stats: residual.ResidualState,
   steps["rule"] = 1.0 - inlier
   if source.labels is not None:
     steps["vote"] = features.vote(inlier, source.labels[view],
-                                  source.num_regions)
+                                  source.num_regions, sem.residual_vote)
   return steps
 
 

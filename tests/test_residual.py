@@ -245,6 +245,26 @@ class SourceTest(absltest.TestCase):
     np.testing.assert_array_equal(regions.loss_weight,
                                   1.0 - regions.transient)
 
+  def test_vote_fraction_decides_a_region(self):
+    photo = jnp.zeros((16, 16, 3))
+    render = photo.at[:10].set(1.0)        # 10 of region 0's 16 rows miss
+    stats = residual.ResidualState.initial().replace(
+        threshold=jnp.float32(0.5))
+    source = map_sources.ResidualSource(
+        labels=jnp.zeros((1, 16, 16), jnp.int32).at[0, :, 8:].set(1)
+        .at[0, 12:].set(1), num_regions=2)
+    # After the 3x3 rule region 0 (left, rows 0-11) fails the test on 80
+    # of its 96 pixels, region 1 (the rest) on 80 of its 160.
+    maps = {v: map_sources.residual_map(
+        source, stats, jnp.int32(0), render, photo, jnp.int32(5),
+        jax.random.key(0), self._sem(residual_vote=v)).transient
+            for v in (0.5, 0.7, 0.9)}
+    left, right = (0, 0), (0, 15)
+    self.assertEqual([float(maps[v][left]) for v in (0.5, 0.7, 0.9)],
+                     [1.0, 1.0, 0.0])
+    self.assertEqual([float(maps[v][right]) for v in (0.5, 0.7, 0.9)],
+                     [1.0, 0.0, 0.0])
+
   def test_stages_end_in_the_map(self):
     photo = jnp.zeros((16, 16, 3))
     render = photo.at[2:14, 2:14].set(1.0).at[6:10, 6:10].set(0.2)

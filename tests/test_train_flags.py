@@ -130,7 +130,8 @@ class SemanticCheckTest(parameterized.TestCase):
       ("max_prune_fraction", 0.0, "max_prune_fraction="),
       ("loss_masking", True, "loss_masking needs evidence='pixel'"),
       ("dense_input_size", 0, "dense_input_size="),
-      ("residual_min_alpha", 1.0, "residual_min_alpha="))
+      ("residual_min_alpha", 1.0, "residual_min_alpha="),
+      ("residual_vote", 0.0, "residual_vote="))
   def test_names_the_field(self, field, value, message):
     sem = dataclasses.replace(ORACLE, **{field: value})
     with self.assertRaisesRegex(app.UsageError, message):
