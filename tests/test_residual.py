@@ -247,7 +247,7 @@ class SourceTest(absltest.TestCase):
 
   def test_vote_fraction_decides_a_region(self):
     photo = jnp.zeros((16, 16, 3))
-    render = photo.at[:10].set(1.0)        # 10 of region 0's 16 rows miss
+    render = photo.at[:10].set(1.0)        # rows 0-9 miss
     stats = residual.ResidualState.initial().replace(
         threshold=jnp.float32(0.5))
     source = map_sources.ResidualSource(
