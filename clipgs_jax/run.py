@@ -143,6 +143,8 @@ def semantic_label(sem: config_lib.SemanticConfig) -> str:
     # The residual test's rule, and the regions that vote it if any.
     rule = sem.residual_rule + (f", {sem.features} feature regions"
                                 if sem.features else "")
+    if sem.features and sem.residual_vote != 0.5:
+      rule += f" masked at {sem.residual_vote:g} failing"
     if sem.scorer == "residual":
       return f"residual map ({rule}, no weights, no oracle)" + variant
     if sem.residual:

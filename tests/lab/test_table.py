@@ -177,7 +177,6 @@ class FormatTest(absltest.TestCase):
       self.assertEqual(cfg.train, bench.train)
       self.assertEqual(cfg.semantic.prune_start, sem.prune_start)
 
-
   def test_residual_labels_name_the_regions(self):
     # A map voted over feature regions says so, alone or gated by a
     # semantic map (the demo's row with --clip_weights); one without
@@ -196,6 +195,13 @@ class FormatTest(absltest.TestCase):
         _row_cfg("residual").semantic))
     self.assertNotIn("regions", run_lib.semantic_label(
         _row_cfg("oracle_patch_residual").semantic))
+    # A vote share other than SLS-agg's majority is a different row.
+    self.assertNotIn("masked at", run_lib.semantic_label(
+        _row_cfg("residual_features").semantic))
+    strict = dataclasses.replace(_row_cfg("residual_features").semantic,
+                                 residual_vote=0.7)
+    self.assertIn("alex feature regions masked at 0.7 failing",
+                  run_lib.semantic_label(strict))
 
 
 class ConfigChangesTest(absltest.TestCase):
