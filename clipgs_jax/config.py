@@ -202,6 +202,14 @@ class SemanticConfig:
   #   majority verdict of the residual test inside them
   residual_vote: float = 0.5   # features: a region is transient when at
   #   least this share of its pixels fail the residual test (SLS-agg: 0.5)
+  residual_uniformity: float = 0.35  # features: before
+  #   residual_uniform_until, a region the vote calls transient is masked
+  #   only where the residual's std / mean over its pixels is below this
+  #   (0: no such gate). The early, smeared render misses static regions
+  #   at their edges and a transient throughout (BUILD_NOTES.md,
+  #   "Transient masks without an oracle")
+  residual_uniform_until: int = 10_000  # paper steps, scaled like
+  #   residual_start (1,250 of 2,500)
 
   @property
   def enabled(self) -> bool:
@@ -228,6 +236,7 @@ class SemanticConfig:
         reg_start=scale(self.reg_start), prune_start=scale(self.prune_start),
         residual_start=(scale(self.residual_start) if self.residual_start
                         else 0),
+        residual_uniform_until=scale(self.residual_uniform_until),
         prune_every=scale(self.prune_every),
         residual_warmup=self.residual_warmup / f)
 

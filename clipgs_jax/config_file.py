@@ -169,7 +169,7 @@ def _semantic_problems(sem: config_lib.SemanticConfig) -> list[str]:
                     "guidance nothing to do; use scorer='off' for vanilla "
                     "3DGS")
   for name in ("accumulate_start", "reg_start", "prune_start",
-               "reset_quiet", "residual_start"):
+               "reset_quiet", "residual_start", "residual_uniform_until"):
     if getattr(sem, name) < 0:
       problems.append(f"{name}={getattr(sem, name)} must be >= 0")
   for name in ("prune_every", "score_every"):
@@ -203,6 +203,9 @@ def _residual_problems(sem: config_lib.SemanticConfig) -> list[str]:
                     "needs scorer='residual' or residual=True")
   if not 0.0 < sem.residual_vote <= 1.0:
     problems.append(f"residual_vote={sem.residual_vote} is not in (0, 1]")
+  if not sem.residual_uniformity >= 0:
+    problems.append(f"residual_uniformity={sem.residual_uniformity} must "
+                    "be >= 0 (0: no gate)")
   if sem.residual_rule not in residual.RULES:
     problems.append(f"residual_rule={sem.residual_rule!r} is not one of "
                     f"{', '.join(residual.RULES)}")

@@ -236,6 +236,33 @@ def vote(inlier: jax.Array, labels: jax.Array, num_regions: int,
   return transient[flat].reshape(jnp.shape(labels))
 
 
+def uniform(residual: jax.Array, labels: jax.Array, num_regions: int,
+            max_variation: float | jax.Array) -> jax.Array:
+  """float32 [H, W], 1 where the pixel's region misses the render evenly.
+
+  A region is uniform when the standard deviation of `residual` over its
+  pixels is below `max_variation` times their mean (a coefficient of
+  variation). A transient misses the render throughout its extent; a
+  static region the early, smeared render has not fit yet misses it at
+  its edges and details, and varies more. Jittable like `vote`.
+
+  Args:
+    residual: float [H, W], mean_c |render - photo|.
+    labels: int [H, W] in [0, num_regions), from `regions`.
+    num_regions: int, the clustering's num_regions.
+    max_variation: float > 0.
+  """
+  flat = jnp.asarray(labels).reshape(-1)
+  res = jnp.asarray(residual, jnp.float32).reshape(-1)
+  size = jnp.maximum(
+      jax.ops.segment_sum(jnp.ones_like(res), flat, num_regions), 1.0)
+  mean = jax.ops.segment_sum(res, flat, num_regions) / size
+  square = jax.ops.segment_sum(res * res, flat, num_regions) / size
+  std = jnp.sqrt(jnp.maximum(square - mean * mean, 0.0))
+  even = (std < max_variation * mean).astype(jnp.float32)
+  return even[flat].reshape(jnp.shape(labels))
+
+
 def benchmark(photos, clustering: Clustering = Clustering(),
               vote_calls: int = 200) -> dict:
   """Seconds of `regions` and `vote` on `photos` (float [V, H, W, 3]).

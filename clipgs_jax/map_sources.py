@@ -144,14 +144,23 @@ def residual_map(source: ResidualSource, stats: residual.ResidualState,
                      residual=res)
 
 
-def held_until_start(rmap: ResidualMap, step: jax.Array,
-                     sem: config_lib.SemanticConfig) -> ResidualMap:
+def held_back(rmap: ResidualMap, source: ResidualSource, view: jax.Array,
+              step: jax.Array, sem: config_lib.SemanticConfig
+              ) -> ResidualMap:
   """`rmap` as the step that starts at `step` uses it: empty (no pixel
-  transient, every pixel in the loss) before sem.residual_start. The
-  evaluation maps (view_map, mask quality) are the test's own map."""
-  if not sem.residual_start:
+  transient, every pixel in the loss) before sem.residual_start; with
+  feature regions and sem.residual_uniformity, before
+  sem.residual_uniform_until only the regions whose residual is uniform
+  (features.uniform) stay transient. The evaluation maps (view_map, mask
+  quality) are the test's own map, which the step uses from then on."""
+  uniform = sem.residual_uniformity > 0 and source.labels is not None
+  if not sem.residual_start and not uniform:
     return rmap
   on = (step >= sem.residual_start).astype(jnp.float32)
+  if uniform:
+    even = features.uniform(rmap.residual, source.labels[view],
+                            source.num_regions, sem.residual_uniformity)
+    on = on * jnp.where(step < sem.residual_uniform_until, even, 1.0)
   return rmap.replace(transient=rmap.transient * on,
                       loss_weight=1.0 - on * (1.0 - rmap.loss_weight))
 
@@ -239,7 +248,7 @@ def view_map(scorer, stats: residual.ResidualState | None, view: jax.Array,
   the residual map for a ResidualSource (from `render` and `alpha`, the
   view rendered by the current model; m does not depend on the warm-up's
   sampling, and before sem.residual_start it is the test's map, which the
-  step does not use yet: held_until_start), else the static map of a
+  step does not use yet: held_back), else the static map of a
   guidance.PixelMapScorer (`render` unread)."""
   if isinstance(scorer, ResidualSource):
     return residual_map(scorer, stats, view, render, photo, jnp.int32(0),

@@ -145,6 +145,11 @@ def semantic_label(sem: config_lib.SemanticConfig) -> str:
                                 if sem.features else "")
     if sem.features and sem.residual_vote != 0.5:
       rule += f" masked at {sem.residual_vote:g} failing"
+    default_gate = config_lib.SemanticConfig.residual_uniformity
+    if sem.features and sem.residual_uniformity != default_gate:
+      rule += (f", early only where even (std / mean < "
+               f"{sem.residual_uniformity:g})" if sem.residual_uniformity
+               else ", no early uniformity gate")
     if sem.scorer == "residual":
       return f"residual map ({rule}, no weights, no oracle)" + variant
     if sem.residual:

@@ -161,7 +161,7 @@ def render_and_grad(state: state_lib.TrainState, scorer,
                                       target, step, sample_key, sem,
                                       valid=valid,
                                       alpha=jax.lax.stop_gradient(out.alpha))
-      rmap = map_sources.held_until_start(rmap, step, sem)
+      rmap = map_sources.held_back(rmap, scorer, view, step, sem)
       if sem.loss_masking:
         weight = rmap.loss_weight
     loss, terms = losses.photometric(out.image, target,

@@ -157,6 +157,32 @@ class VoteTest(absltest.TestCase):
     self.assertLen(traces, 1)
 
 
+class UniformTest(absltest.TestCase):
+
+  def test_even_regions_against_a_numpy_loop(self):
+    labels = VoteTest.LABELS
+    # Region 0 misses evenly (std 0), region 1 at its edge only (mean
+    # 0.25, std 0.433), region 2 by 0.4 to 0.6 (mean 0.5, std 0.1).
+    res = np.array([[0.8, 0.8, 0.0, 0.0],
+                    [0.8, 0.8, 0.0, 1.0],
+                    [0.4, 0.6, 0.4, 0.6]], np.float32)
+    even = features.uniform(res, labels, 4, 0.35)
+    np.testing.assert_array_equal(even, [[1, 1, 0, 0],
+                                         [1, 1, 0, 0],
+                                         [1, 1, 1, 1]])
+    self.assertEqual(even.dtype, jnp.float32)
+    rng = np.random.default_rng(2)
+    labels = rng.integers(0, 6, (9, 11)).astype(np.int32)
+    res = rng.random((9, 11)).astype(np.float32) ** 3
+    for cut in (0.3, 0.8, 1.2):
+      even = np.asarray(features.uniform(res, labels, 6, cut))
+      for k in range(6):
+        r = res[labels == k]
+        if r.size:
+          np.testing.assert_array_equal(even[labels == k],
+                                        float(r.std() < cut * r.mean()))
+
+
 @shared_data.needs_data("bird")
 def test_bird_regions_have_sensible_sizes():
   """Four bird photos at downscale 8 (120 x 68): every seed makes a region,

@@ -123,6 +123,8 @@ class ScheduleTest(parameterized.TestCase):
         2000).residual_start, 500)
     self.assertEqual(config.SemanticConfig(residual_start=0).scaled_to(
         2000).residual_start, 0)
+    self.assertEqual(config.SemanticConfig().scaled_to(
+        2500).residual_uniform_until, 1250)
 
 
 class ScorerTest(absltest.TestCase):

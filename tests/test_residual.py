@@ -192,13 +192,47 @@ class SourceTest(absltest.TestCase):
     rmap = map_sources.residual_map(
         map_sources.ResidualSource(), stats, jnp.int32(0), render, photo,
         jnp.int32(99), jax.random.key(0), sem)
-    maps = [map_sources.held_until_start(rmap, jnp.int32(step), sem)
+    maps = [map_sources.held_back(rmap, map_sources.ResidualSource(),
+                                  jnp.int32(0), jnp.int32(step), sem)
             for step in (99, 100)]
     np.testing.assert_array_equal(maps[0].transient, 0.0)
     np.testing.assert_array_equal(maps[0].loss_weight, 1.0)
     np.testing.assert_array_equal(maps[1].transient[5:11, 5:11], 1.0)
     np.testing.assert_array_equal(maps[1].loss_weight,
                                   1.0 - maps[1].transient)
+
+  def test_uneven_regions_wait_until_the_uniformity_gate_ends(self):
+    photo = jnp.zeros((16, 16, 3))
+    # Region 0 (left) misses evenly; region 1 (right) misses by 0.6 to 1.0
+    # in stripes, std / mean 0.25; both fail the test whole.
+    render = photo.at[:, :8].set(0.8).at[:, 8:].set(1.0).at[::2, 8:].set(0.6)
+    stats = residual.ResidualState.initial().replace(
+        threshold=jnp.float32(0.5))
+    source = map_sources.ResidualSource(
+        labels=jnp.zeros((1, 16, 16), jnp.int32).at[0, :, 8:].set(1),
+        num_regions=2)
+    sem = self._sem(residual_uniformity=0.2, residual_uniform_until=100)
+    rmap = map_sources.residual_map(source, stats, jnp.int32(0), render,
+                                    photo, jnp.int32(99), jax.random.key(0),
+                                    sem)
+    np.testing.assert_array_equal(rmap.transient, 1.0)
+    early, late = [map_sources.held_back(rmap, source, jnp.int32(0),
+                                         jnp.int32(step), sem)
+                   for step in (99, 100)]
+    np.testing.assert_array_equal(early.transient[:, :8], 1.0)
+    np.testing.assert_array_equal(early.transient[:, 8:], 0.0)
+    np.testing.assert_array_equal(early.loss_weight, 1.0 - early.transient)
+    np.testing.assert_array_equal(late.transient, rmap.transient)
+    np.testing.assert_array_equal(late.loss_weight, rmap.loss_weight)
+    # A looser gate passes the striped region too; without regions (the
+    # per-pixel map) there is nothing to gate.
+    loose = map_sources.held_back(
+        rmap, source, jnp.int32(0), jnp.int32(99),
+        self._sem(residual_uniformity=0.3, residual_uniform_until=100))
+    np.testing.assert_array_equal(loose.transient, 1.0)
+    per_pixel = map_sources.held_back(rmap, map_sources.ResidualSource(),
+                                      jnp.int32(0), jnp.int32(99), sem)
+    self.assertIs(per_pixel, rmap)
 
   def test_alpha_gate_keeps_transients_only_on_rendered_surface(self):
     photo = jnp.zeros((16, 16, 3))

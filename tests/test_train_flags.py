@@ -131,7 +131,9 @@ class SemanticCheckTest(parameterized.TestCase):
       ("loss_masking", True, "loss_masking needs evidence='pixel'"),
       ("dense_input_size", 0, "dense_input_size="),
       ("residual_min_alpha", 1.0, "residual_min_alpha="),
-      ("residual_vote", 0.0, "residual_vote="))
+      ("residual_vote", 0.0, "residual_vote="),
+      ("residual_uniformity", -0.1, "residual_uniformity="),
+      ("residual_uniform_until", -1, "residual_uniform_until="))
   def test_names_the_field(self, field, value, message):
     sem = dataclasses.replace(ORACLE, **{field: value})
     with self.assertRaisesRegex(app.UsageError, message):

@@ -202,6 +202,13 @@ class FormatTest(absltest.TestCase):
                                  residual_vote=0.7)
     self.assertIn("alex feature regions masked at 0.7 failing",
                   run_lib.semantic_label(strict))
+    # So is an early uniformity gate other than the default's 0.35.
+    self.assertNotIn("even", run_lib.semantic_label(strict))
+    looser = dataclasses.replace(strict, residual_uniformity=0.5)
+    self.assertIn("failing, early only where even (std / mean < 0.5)",
+                  run_lib.semantic_label(looser))
+    self.assertIn("failing, no early uniformity gate", run_lib.semantic_label(
+        dataclasses.replace(strict, residual_uniformity=0.0)))
 
 
 class ConfigChangesTest(absltest.TestCase):
