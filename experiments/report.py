@@ -7,6 +7,7 @@
   python experiments/report.py --report=masks --runs=DIR [--mask_tau=T]
   python experiments/report.py --report=evidence --runs=DIR
   python experiments/report.py --report=loss_maps --runs=DIR [--views=3]
+      [--clean_run=CLEAN_DIR]
   python experiments/report.py --report=curve --runs=DIR1,DIR2
       --curve_png=curve.png [--labels=a,b] [--x_axis=seconds|step]
   python experiments/report.py --report=figures --runs=TABLE_ROOT
@@ -30,7 +31,9 @@ loss_maps: with pixel evidence, the map m the loss uses for every
   most): DIR/loss_maps.json and DIR/loss_maps.png (clipgs_jax/lab/
   loss_maps.py). For the residual map, its recall after each of its steps
   (threshold, 3x3 rule, region vote, gates) and the most the feature
-  regions' vote could keep.
+  regions' vote could keep; with --clean_run (the clean twin's run), the
+  share of transient pixels that differ from what lies behind them by at
+  least the threshold, and of those the share the model reproduces.
 curve: test MSE (log) against training time of each run's curve.json (a
   run folder or the curve.json itself).
 figures: per benchmark, a render grid and error curves of the table's
@@ -78,6 +81,9 @@ _FIGURES_DIR = flags.DEFINE_string("figures_dir", None,
 _VIEWS = flags.DEFINE_integer("views", 3, "figures: test views (grid rows) "
                               "per benchmark; loss_maps: views per failure "
                               "kind.")
+_CLEAN_RUN = flags.DEFINE_string(
+    "clean_run", None, "loss_maps: the run folder of the scene's clean twin "
+    "(the same cameras, no transients): what lies behind each transient.")
 _FIGURE_DOWNSCALE = flags.DEFINE_integer(
     "figure_downscale", None, "figures: image downscale of the renders "
     "(default: the runs' run.json).")
@@ -147,7 +153,7 @@ def _evidence() -> None:
 
 def _loss_maps() -> None:
   cli.require(_VIEWS.value >= 1, "views", _VIEWS.value, "must be positive")
-  out = loss_maps.loss_map_report(_one_run(), _VIEWS.value)
+  out = loss_maps.loss_map_report(_one_run(), _VIEWS.value, _CLEAN_RUN.value)
   pooled = out["pooled"]
   print(f"masked {pooled['masked_fraction']:.3f} of the training pixels; "
         + ", ".join(f"{k} {_fraction(pooled[k])}" for k in
@@ -155,6 +161,11 @@ def _loss_maps() -> None:
   if "stages" in pooled:
     print("  recall after each step of the residual map: " + ", ".join(
         f"{k} {_fraction(v['recall'])}" for k, v in pooled["stages"].items()))
+  if "contrast" in pooled:
+    c = pooled["contrast"]
+    print(f"  transient pixels at least {c['threshold']:.3f} from what lies "
+          f"behind them: {_fraction(c['reachable'])}; of all, reproduced by "
+          f"the model there: {_fraction(c['baked'])}")
   for kind, names in out["worst"].items():
     print(f"  {kind}: {', '.join(names) or '(none)'}")
   print(f"wrote {out['json']}" + (f" and {out['png']}" if out["png"] else ""))

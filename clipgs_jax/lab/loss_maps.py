@@ -10,11 +10,16 @@ masked pixels). For the residual map, where its recall goes: the share of
 the ground truth's pixels still transient after each of the map's steps
 (map_sources.residual_stages), and with feature regions the most their
 majority vote could keep (every region that the ground truth fills at
-least half of).
+least half of). With the run of the scene's clean twin (the same cameras,
+no transients), how far a residual test at the run's threshold could reach:
+the ground truth's pixels whose photo differs by at least the threshold
+from what lies behind the transient (the clean run's render), and of those
+the ones the run's own render reproduces (baked into the model).
 """
 
 import os
 
+import jax
 import numpy as np
 from matplotlib import figure
 
@@ -24,6 +29,7 @@ from clipgs_jax import fileio
 from clipgs_jax import guidance
 from clipgs_jax import map_sources
 from clipgs_jax import plots
+from clipgs_jax import residual
 from clipgs_jax import run as run_lib
 from clipgs_jax import sh
 from clipgs_jax.data import scene as scene_lib
@@ -97,17 +103,74 @@ def stage_summary(counts: dict) -> dict:
           for name, (hit, masked) in counts.items() if name != "pixels"}
 
 
-def loss_map_report(workdir: str, count: int = 3) -> dict:
+def contrast_counts(photo: np.ndarray, render: np.ndarray,
+                    behind: np.ndarray, truth: np.ndarray,
+                    threshold: float) -> np.ndarray:
+  """int64 [3] of one view's ground-truth transient pixels: all of them;
+  "reachable", where the photo differs from `behind` (the render of a model
+  trained without the transients) by at least `threshold`, as the residual
+  test measures a difference; "baked", reachable but under the threshold
+  against `render` (the run's model reproduces the transient there)."""
+  reachable = np.asarray(residual.residual(behind, photo)) >= threshold
+  fitted = np.asarray(residual.residual(render, photo)) < threshold
+  return np.array([np.count_nonzero(truth),
+                   np.count_nonzero(truth & reachable),
+                   np.count_nonzero(truth & reachable & fitted)], np.int64)
+
+
+def same_cameras(a, b) -> bool:
+  """Whether two stacked camera.Camera hold the same views (to 1e-5)."""
+  la, lb = jax.tree.leaves(a), jax.tree.leaves(b)
+  return len(la) == len(lb) and all(
+      np.shape(x) == np.shape(y) and np.allclose(x, y, atol=1e-5)
+      for x, y in zip(la, lb))
+
+
+def contrast(state, cfg, views, clean_run: str) -> dict:
+  """{"threshold", "reachable", "baked"} (shares of the ground truth's
+  pixels, contrast_counts) of a residual run's final model `state` on its
+  training `views`, against `clean_run`, the run of the clean twin.
+
+  Raises:
+    ValueError: `clean_run`'s training cameras are not `views`'.
+  """
+  _, clean_cfg, clean_scene, clean_state = run_lib.load_state(clean_run)
+  if not same_cameras(clean_scene.train.cameras, views.cameras):
+    raise ValueError(
+        f"--clean_run={clean_run} was trained on other cameras than the "
+        "run's training views; pass the run of this scene's clean twin "
+        "(the same photos' cameras, without transients).")
+  threshold = float(state.maps.threshold)
+  totals = np.zeros(3, np.int64)
+  for i, ((mine, _, _), (behind, _, _)) in enumerate(zip(
+      evaluation.renders(state.params, state.alive, views, cfg),
+      evaluation.renders(clean_state.params, clean_state.alive, views,
+                         clean_cfg))):
+    totals += contrast_counts(
+        scene_lib.crop(views, i, views.images[i]), np.asarray(mine),
+        np.asarray(behind),
+        scene_lib.crop(views, i, np.asarray(views.masks[i], bool)), threshold)
+  gt, reachable, baked = (int(x) for x in totals)
+  return {"threshold": threshold,
+          "reachable": reachable / gt if gt else None,
+          "baked": baked / gt if gt else None}
+
+
+def loss_map_report(workdir: str, count: int = 3,
+                    clean_run: str | None = None) -> dict:
   """Writes LOSS_MAPS_JSON and LOSS_MAPS_PNG into a finished run folder.
 
   Args:
     workdir: a run folder of experiments/train.py with pixel evidence.
     count: views drawn per failure kind.
+    clean_run: None, or the run folder of the scene's clean twin: adds
+      "contrast" (contrast()) to "pooled" for a residual map with masks.
   Returns:
     {"json", "png", "pooled" (masked fraction and, with masks, P / R /
     IoU over all training views), "worst" (worst_views)}.
   Raises:
-    ValueError: the run has no per-pixel map (semantic.evidence != pixel).
+    ValueError: the run has no per-pixel map (semantic.evidence != pixel),
+      or `clean_run` is given for a run without a residual map and masks.
   """
   _, cfg, scene, state = run_lib.load_state(workdir)
   if not cfg.semantic.localized:
@@ -121,6 +184,9 @@ def loss_map_report(workdir: str, count: int = 3) -> dict:
                             cfg.gaussians.sh_degree)
   by_stage = (isinstance(scorer, map_sources.ResidualSource)
               and views.masks is not None)
+  if clean_run is not None and not by_stage:
+    raise ValueError(f"--clean_run needs a residual-map run on a scene with "
+                     f"ground-truth masks; {workdir} is not one.")
   maps, truths, scores, steps = {}, {}, {}, {}
   totals = np.zeros(3, np.int64)
   for i, (name, m, truth) in enumerate(evaluation.training_maps(
@@ -146,6 +212,8 @@ def loss_map_report(workdir: str, count: int = 3) -> dict:
     pooled |= evaluation.confusion_scores(totals)
   if by_stage:
     pooled["stages"] = stage_summary(steps)
+  if clean_run is not None:
+    pooled["contrast"] = contrast(state, cfg, views, clean_run)
   worst = (worst_views(scores, count) if views.masks is not None else
            {"most_masked": sorted(scores, key=lambda n: -scores[n][
                "masked_fraction"])[:count]})

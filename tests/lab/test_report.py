@@ -329,3 +329,32 @@ def test_loss_map_report_needs_pixel_evidence(saved_run):
   workdir, _, _ = saved_run
   with pytest.raises(ValueError, match="no per-pixel map"):
     loss_maps.loss_map_report(str(workdir))
+
+
+def test_contrast_counts():
+  truth = np.array([[True, True, True, False]])
+  photo = np.zeros((1, 4, 3), np.float32)
+  behind = np.full((1, 4, 3), 0.5, np.float32)   # 0.5 from the photo
+  behind[0, 0] = 0.05                             # under the threshold
+  render = np.full((1, 4, 3), 0.5, np.float32)
+  render[0, 1] = 0.0                              # the transient fitted
+  np.testing.assert_array_equal(
+      loss_maps.contrast_counts(photo, render, behind, truth, 0.15),
+      [3, 2, 1])
+
+
+def test_loss_map_contrast_against_a_clean_run(residual_run):
+  workdir, scene, _, _ = residual_run
+  # The run as its own clean twin: what lies behind is its own render, so
+  # nothing is baked and every reachable pixel passes the threshold.
+  out = loss_maps.loss_map_report(str(workdir), 1, clean_run=str(workdir))
+  c = out["pooled"]["contrast"]
+  assert c["threshold"] == pytest.approx(0.1)
+  assert c["baked"] == 0.0
+  assert c["reachable"] == pytest.approx(
+      out["pooled"]["stages"]["threshold"]["recall"], abs=0.02)
+  assert 0.0 < c["reachable"] <= 1.0
+  cams = scene.train.cameras
+  assert loss_maps.same_cameras(cams, cams)
+  assert not loss_maps.same_cameras(cams, dataclasses.replace(
+      cams, translation=np.asarray(cams.translation) + 0.1))
