@@ -33,7 +33,8 @@ loss_maps: with pixel evidence, the map m the loss uses for every
   (threshold, 3x3 rule, region vote, gates) and the most the feature
   regions' vote could keep; with --clean_run (the clean twin's run), the
   share of transient pixels that differ from what lies behind them by at
-  least the threshold, and of those the share the model reproduces.
+  least the threshold, and the share that do but that the model
+  reproduces (baked in), both of all transient pixels.
 curve: test MSE (log) against training time of each run's curve.json (a
   run folder or the curve.json itself).
 figures: per benchmark, a render grid and error curves of the table's
