@@ -10,6 +10,7 @@
       [--clean_run=CLEAN_DIR]
   python experiments/report.py --report=curve --runs=DIR1,DIR2
       --curve_png=curve.png [--labels=a,b] [--x_axis=seconds|step]
+  python experiments/report.py --report=seeds --runs=ROOT_S0,ROOT_S1,...
   python experiments/report.py --report=figures --runs=TABLE_ROOT
       --benchmarks=DIR[,DIR...] --figures_dir=DIR [--views=3]
       [--figure_downscale=K]
@@ -37,6 +38,11 @@ loss_maps: with pixel evidence, the map m the loss uses for every
   reproduces (baked in), both of all transient pixels.
 curve: test MSE (log) against training time of each run's curve.json (a
   run folder or the curve.json itself).
+seeds: the table roots of several seeds (each a configs/table.py
+  --workdir, one --config.train.seed) as one table: every cell's PSNR per
+  seed, its mean, its difference from vanilla (clean for a control row)
+  paired by seed, and per benchmark the test views that move most between
+  seeds (clipgs_jax/lab/seeds.py).
 figures: per benchmark, a render grid and error curves of the table's
   runs in TABLE_ROOT/<benchmark name>/<row>/ (clipgs_jax/lab/figures.py).
 """
@@ -52,15 +58,17 @@ from clipgs_jax.lab import figures
 from clipgs_jax.lab import loss_maps
 from clipgs_jax import plots
 from clipgs_jax.lab import report
+from clipgs_jax.lab import seeds
 from clipgs_jax import run as run_lib
 
 _REPORT = flags.DEFINE_enum(
     "report", None,
     ["metrics", "renders", "masks", "evidence", "loss_maps", "curve",
-     "figures"],
+     "seeds", "figures"],
     "What to make of the runs.")
 _RUNS = flags.DEFINE_list("runs", None, "Run folders written by "
-                          "experiments/train.py (figures: the table's root).")
+                          "experiments/train.py (figures: the table's root; "
+                          "seeds: the tables' roots).")
 _GAUSSIANS = flags.DEFINE_enum("gaussians", "auto", list(report.SOURCES),
                                "metrics: where the Gaussians come from "
                                "(auto: the checkpoint if present).")
@@ -185,6 +193,11 @@ def main(argv):
     _evidence()
   elif what == "loss_maps":
     _loss_maps()
+  elif what == "seeds":
+    for root in _RUNS.value:
+      cli.require_folder("runs", root)
+    print(seeds.format_markdown(seeds.seed_table(
+        seeds.find_runs(_RUNS.value))), end="")
   elif what == "curve":
     cli.require(_CURVE_PNG.value is not None, "curve_png", None,
                 "is needed: pass the PNG to write")

@@ -1,0 +1,207 @@
+"""One benchmark table over several seeds: how far a cell moves by seed alone.
+
+A table root (configs/table.py) holds ROOT/<benchmark>/<row>/ for one
+`train.seed`. Given the roots of several seeds, every (benchmark, row) cell
+gets its per-seed test PSNR, their mean, and its difference from the
+cell's base row (vanilla; clean for a control row on the clean views)
+paired by seed, since runs of one seed draw the same order of views. Per
+benchmark it names the test views whose PSNR moves most between seeds of
+one row: a handful of such views can decide a cell, and a difference
+smaller than their spread is not a measurement.
+"""
+
+import glob
+import json
+import math
+import os
+
+import numpy as np
+
+from clipgs_jax import run as run_lib
+from clipgs_jax.lab import table
+
+CONFIG_JSON = "config.json"
+UNSTABLE_VIEWS = 3   # test views named per benchmark as the least stable
+
+
+def _read(path: str) -> dict:
+  with open(path) as f:
+    return json.load(f)
+
+
+def find_runs(roots: list[str]) -> list[dict]:
+  """Every finished run under the table roots, as dicts.
+
+  Args:
+    roots: folders, each ROOT/<benchmark>/<row>/ with metrics.json and
+      config.json.
+
+  Returns:
+    list of {"benchmark", "row", "seed", "clean_views", "steps", "psnr",
+    "per_view" ({test image: PSNR}), "precision", "recall", "seconds",
+    "workdir"}.
+
+  Raises:
+    ValueError: naming the folder, when a root holds no finished run or
+      two runs share a benchmark, row and seed.
+  """
+  runs, seen = [], {}
+  for root in roots:
+    found = sorted(glob.glob(os.path.join(root, "*", "*",
+                                          run_lib.METRICS_JSON)))
+    if not found:
+      raise ValueError(f"{root}: no <benchmark>/<row>/"
+                       f"{run_lib.METRICS_JSON}; pass the --workdir of a "
+                       "table run (configs/table.py)")
+    for path in found:
+      workdir = os.path.dirname(path)
+      metrics = _read(path)
+      cfg = _read(os.path.join(workdir, CONFIG_JSON))
+      test = metrics.get("test") or {}
+      quality = (metrics.get("semantic") or {}).get("mask_quality") or {}
+      run = {"benchmark": os.path.basename(os.path.dirname(workdir)),
+             "row": os.path.basename(workdir),
+             "seed": cfg["train"]["seed"],
+             "clean_views": cfg["data"]["train_split"] == "clean",
+             "steps": metrics.get("steps"),
+             "psnr": table.finite(test.get("psnr")),
+             "per_view": {k: v["psnr"] for k, v in
+                          (test.get("per_image") or {}).items()},
+             "precision": table.finite(quality.get("precision")),
+             "recall": table.finite(quality.get("recall")),
+             "seconds": table.finite(metrics.get("train_seconds")),
+             "workdir": workdir}
+      key = (run["benchmark"], run["row"], run["seed"])
+      if key in seen:
+        raise ValueError(f"{workdir} and {seen[key]} are both seed "
+                         f"{key[2]} of {key[1]} on {key[0]}; pass one")
+      seen[key] = workdir
+      runs.append(run)
+  return runs
+
+
+def _mean(xs: list) -> float | None:
+  xs = [x for x in xs if x is not None]
+  return sum(xs) / len(xs) if xs else None
+
+
+def _std_error(xs: list[float]) -> float | None:
+  """The standard error of the mean of xs (None under two values)."""
+  if len(xs) < 2:
+    return None
+  return float(np.std(xs, ddof=1) / math.sqrt(len(xs)))
+
+
+def unstable_views(runs: list[dict], count: int = UNSTABLE_VIEWS
+                   ) -> list[tuple[str, float]]:
+  """The test views whose PSNR moves most between seeds of one row.
+
+  Returns:
+    [(view, spread)], largest first: spread is the root mean square over
+    rows of the view's standard deviation across that row's seeds (rows
+    with one seed left out).
+  """
+  by_row = {}
+  for run in runs:
+    by_row.setdefault(run["row"], []).append(run["per_view"])
+  variances = {}
+  for per_views in by_row.values():
+    if len(per_views) < 2:
+      continue
+    for view in set.intersection(*(set(p) for p in per_views)):
+      variances.setdefault(view, []).append(
+          float(np.var([p[view] for p in per_views], ddof=1)))
+  spread = {v: math.sqrt(sum(x) / len(x)) for v, x in variances.items()}
+  return sorted(spread.items(), key=lambda kv: (-kv[1], kv[0]))[:count]
+
+
+def seed_table(runs: list[dict], num_unstable: int = UNSTABLE_VIEWS
+               ) -> dict:
+  """The cells of the runs over their seeds, and each benchmark's views.
+
+  Args:
+    runs: find_runs' list.
+    num_unstable: how many of each benchmark's least stable test views
+      to name and to leave out of "delta_without_unstable".
+
+  Returns:
+    {"cells": [{"benchmark", "row", "base", "seeds", "psnr" (per seed),
+    "mean", "delta" (paired with the base row, per seed it shares),
+    "mean_delta", "delta_std_error", "delta_without_unstable" (the
+    paired difference over the other test views), "precision", "recall",
+    "seconds" (means)}], "unstable": {benchmark: [(view, spread)]}}.
+
+  Raises:
+    ValueError: when the seeds of one cell ran different step counts.
+  """
+  cells, unstable = [], {}
+  for bench in sorted({r["benchmark"] for r in runs}):
+    mine = [r for r in runs if r["benchmark"] == bench]
+    unstable[bench] = unstable_views(mine, num_unstable)
+    left_out = {v for v, _ in unstable[bench]}
+    by_row = {}
+    for run in sorted(mine, key=lambda r: r["seed"]):
+      by_row.setdefault(run["row"], {})[run["seed"]] = run
+    order = [r for r in table.ROWS if r in by_row] + sorted(
+        set(by_row) - set(table.ROWS))
+    for row in order:
+      seeds = by_row[row]
+      steps = {r["steps"] for r in seeds.values()}
+      if len(steps) > 1:
+        raise ValueError(f"{row} on {bench} ran {sorted(steps)} steps over "
+                         "its seeds; a cell's seeds must share settings")
+      first = next(iter(seeds.values()))
+      base = table.CLEAN if first["clean_views"] else table.VANILLA
+      base_runs = by_row.get(base, {}) if row != base else {}
+      paired = sorted(set(seeds) & set(base_runs))
+      delta = {s: seeds[s]["psnr"] - base_runs[s]["psnr"] for s in paired}
+
+      def other_views(run):
+        return [p for v, p in run["per_view"].items() if v not in left_out]
+      rest = [_mean(other_views(seeds[s])) - _mean(other_views(base_runs[s]))
+              for s in paired if other_views(seeds[s])]
+      cells.append({
+          "benchmark": bench, "row": row,
+          "base": base if paired else None,
+          "seeds": sorted(seeds),
+          "psnr": {s: r["psnr"] for s, r in seeds.items()},
+          "mean": _mean([r["psnr"] for r in seeds.values()]),
+          "delta": delta, "mean_delta": _mean(list(delta.values())),
+          "delta_std_error": _std_error(list(delta.values())),
+          "delta_without_unstable": _mean(rest),
+          "precision": _mean([r["precision"] for r in seeds.values()]),
+          "recall": _mean([r["recall"] for r in seeds.values()]),
+          "seconds": _mean([r["seconds"] for r in seeds.values()])})
+  return {"cells": cells, "unstable": unstable}
+
+
+def format_markdown(result: dict) -> str:
+  """The seed table as Markdown, one line per benchmark on its views."""
+  f = table.fmt
+  lines = [
+      "| benchmark | row | seeds | PSNR per seed | mean | Δ per seed | "
+      "mean Δ ± s.e. | Δ, other views | map P / R | train s |",
+      "|---|---|---|---|---:|---|---:|---:|---:|---:|"]
+  for c in result["cells"]:
+    per_seed = " / ".join(f(c["psnr"][s], ".2f") for s in c["seeds"])
+    delta = " / ".join(f(c["delta"][s], "+.2f") for s in sorted(c["delta"]))
+    mean_delta = f(c["mean_delta"], "+.2f", "—")
+    if c["delta_std_error"] is not None:
+      mean_delta += f" ± {c['delta_std_error']:.2f}"
+    pr = ("—" if c["recall"] is None else
+          f"{f(c['precision'], '.2f')} / {c['recall']:.2f}")
+    lines.append(
+        f"| {c['benchmark']} | {c['row']} | "
+        f"{','.join(map(str, c['seeds']))} | {per_seed} | "
+        f"{f(c['mean'], '.2f')} | {delta or '—'} | {mean_delta} | "
+        f"{f(c['delta_without_unstable'], '+.2f', '—')} | {pr} | "
+        f"{f(c['seconds'], '.0f')} |")
+  lines.append("")
+  lines.append("Δ: the row minus its base (vanilla, or clean for a control "
+               "row) of the same seed. Δ, other views: the same over the "
+               "test views left after the least stable ones below.")
+  for bench, views in result["unstable"].items():
+    named = ", ".join(f"{v} ({s:.2f} dB)" for v, s in views) or "(one seed)"
+    lines.append(f"- {bench}: the test views that move most between seeds "
+                 f"of one row (s.d.): {named}")
+  return "\n".join(lines) + "\n"
