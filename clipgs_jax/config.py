@@ -187,8 +187,8 @@ class SemanticConfig:
   residual_median_factor: float = 3.0  # threshold >= this x the median
   #   residual (0: the quantile alone; BUILD_NOTES.md, "Transient masks
   #   without an oracle": a quantile masks its share of a clean view too)
-  residual_min_threshold: float = 0.19  # threshold >= this residual
-  #   (0: none; 0.15 of mean absolute error flags as many static pixels). Relative floors stay at the fit's own error
+  residual_min_threshold: float = 0.15  # threshold >= this mean absolute
+  #   colour error (0: none). Relative floors stay at the fit's own error
   #   level, so a clean view stays masked where the fit lags; an absolute
   #   one lets a clean view's map shrink as the fit improves (BUILD_NOTES)
   residual_min_alpha: float = 0.9  # a pixel is transient only where the

@@ -247,7 +247,7 @@ def uniform(residual: jax.Array, labels: jax.Array, num_regions: int,
   its edges and details, and varies more. Jittable like `vote`.
 
   Args:
-    residual: float [H, W], residual.residual(render, photo).
+    residual: float [H, W], mean_c |render - photo|.
     labels: int [H, W] in [0, num_regions), from `regions`.
     num_regions: int, the clustering's num_regions.
     max_variation: float > 0.

@@ -57,7 +57,7 @@ class ResidualMap:
     transient: float32 [H, W] in {0, 1}, the map m (1 = transient).
     loss_weight: float32 [H, W] in {0, 1}, the per-pixel weight of the
       photometric loss: 1 - m, with the warm-up's sampled pixels kept.
-    residual: float32 [H, W], residual.residual(render, photo).
+    residual: float32 [H, W], mean_c |render - photo|.
   """
   transient: jax.Array
   loss_weight: jax.Array

@@ -2,9 +2,9 @@
 
 A pixel whose colour the current model cannot reproduce, while most of the
 image it can, is likely transient. Each step takes the render's per-pixel
-residual r (`residual`: the error's mean over channels plus its hue part,
-no gradient) and calls a pixel an inlier when r is under a running
-quantile of the residuals seen so far; the transient map is m = 1 - inlier. Two rules (BUILD_NOTES.md, "Transient
+residual r = mean_c |render - photo| (no gradient) and calls a pixel an
+inlier when r is under a running quantile of the residuals seen so far;
+the transient map is m = 1 - inlier. Two rules (BUILD_NOTES.md, "Transient
 masks without an oracle"):
   - "sls" (SpotLessSplats' RobustFilter): the threshold is the `quantile`
     of an exponentially decayed histogram of every step's residuals; a
@@ -55,22 +55,8 @@ class ResidualState:
 
 
 def residual(render: jax.Array, photo: jax.Array) -> jax.Array:
-  """float [H, W] in [0, 7/3]: how far the render misses the photo.
-
-  With e = render - photo (no gradient), r = mean_c |e| + max_c |e_c -
-  mean_c e|: SpotLessSplats' mean absolute error plus the error's part
-  that is not grey, a shift of hue rather than of brightness. What the
-  model has not fit yet (a smeared edge, exposure, a highlight) misses
-  mostly in brightness, while a transient is a different object, most
-  often of another colour: at an equal share of static pixels over the
-  threshold, the hue term finds 11-14 points more of the transient pixels
-  (BUILD_NOTES.md, "Transient masks without an oracle"). Values over 1
-  fall in the histogram's last bin.
-  """
-  error = jax.lax.stop_gradient(render) - photo
-  hue = jnp.max(jnp.abs(error - jnp.mean(error, axis=-1, keepdims=True)),
-                axis=-1)
-  return jnp.mean(jnp.abs(error), axis=-1) + hue
+  """float [H, W], mean over channels of |render - photo|, no gradient."""
+  return jnp.mean(jnp.abs(jax.lax.stop_gradient(render) - photo), axis=-1)
 
 
 def _bins(res: jax.Array) -> jax.Array:
@@ -115,8 +101,8 @@ def update(state: ResidualState, res: jax.Array | None = None, *,
       median (0: the quantile alone). A quantile calls the same share of
       pixels outliers whether or not the views hold transients; the floor
       keeps pixels whose residual is ordinary for the current fit.
-    minimum: the threshold is at least this (a `residual` in [0, 1]; 0:
-      no absolute floor).
+    minimum: the threshold is at least this (a mean absolute colour
+      error in [0, 1]; 0: no absolute floor).
   """
   step_counts = counts(res) if histogram is None else histogram
   histogram = decay * state.histogram + step_counts

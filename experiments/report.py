@@ -35,9 +35,7 @@ loss_maps: with pixel evidence, the map m the loss uses for every
   regions' vote could keep; with --clean_run (the clean twin's run), the
   share of transient pixels that differ from what lies behind them by at
   least the threshold, and the share that do but that the model
-  reproduces (baked in), both of all transient pixels. And the residual's
-  separation: the share of transient pixels over the residual that 1 % of
-  static pixels exceed, beside the mean absolute error's.
+  reproduces (baked in), both of all transient pixels.
 curve: test MSE (log) against training time of each run's curve.json (a
   run folder or the curve.json itself).
 seeds: the table roots of several seeds (each a configs/table.py
@@ -172,12 +170,6 @@ def _loss_maps() -> None:
   if "stages" in pooled:
     print("  recall after each step of the residual map: " + ", ".join(
         f"{k} {_fraction(v['recall'])}" for k, v in pooled["stages"].items()))
-  if "separation" in pooled:
-    c = pooled["separation"]
-    print(f"  transient pixels over the residual that "
-          f"{c['static_share']:.0%} of static pixels exceed: "
-          f"{_fraction(c['residual'])} (mean |render - photo| alone: "
-          f"{_fraction(c['mean_abs'])})")
   if "contrast" in pooled:
     c = pooled["contrast"]
     print(f"  transient pixels at least {c['threshold']:.3f} from what lies "

@@ -83,28 +83,6 @@ class QuantileTest(parameterized.TestCase):
     self.assertEqual(float(jnp.sum(state.histogram)), 4.0)
 
 
-class ResidualTest(absltest.TestCase):
-
-  def test_hue_weighs_more_than_brightness(self):
-    photo = jnp.full((1, 3, 3), 0.5)
-    render = jnp.stack([photo[0, 0] + 0.2,                     # brighter
-                        photo[0, 0] + jnp.array([0.2, -0.2, 0.2]),  # hue
-                        photo[0, 0]])[None]                    # exact
-    # The same mean absolute error, 0.2; the hue shift adds its non-grey
-    # part: e - mean(e) = (0.133, -0.267, 0.133).
-    np.testing.assert_allclose(residual.residual(render, photo),
-                               [[0.2, 0.2 + 0.8 / 3.0, 0.0]], atol=1e-6)
-
-  def test_bounds_and_no_gradient(self):
-    photo = jnp.array([[[0.0, 1.0, 0.0]]])
-    render = jnp.array([[[1.0, 0.0, 1.0]]])   # the largest miss
-    # mean |e| = 1; e - mean(e) = (2/3, -4/3, 2/3).
-    np.testing.assert_allclose(residual.residual(render, photo),
-                               [[1.0 + 4.0 / 3.0]], atol=1e-6)
-    grad = jax.grad(lambda r: jnp.sum(residual.residual(r, photo)))(render)
-    np.testing.assert_array_equal(grad, 0.0)
-
-
 class RuleTest(absltest.TestCase):
 
   def test_sls_isolated_outlier_is_rescued_by_neighbours(self):

@@ -14,11 +14,7 @@ least half of). With the run of the scene's clean twin (the same cameras,
 no transients), how far a residual test at the run's threshold could reach:
 the ground truth's pixels whose photo differs by at least the threshold
 from what lies behind the transient (the clean run's render), and of those
-the ones the run's own render reproduces (baked into the model). And how
-well the residual tells transient pixels from static ones whatever the
-threshold: the share of the ground truth over the threshold that flags
-STATIC_SHARE of the static pixels, for residual.residual and for the
-mean absolute error alone (SpotLessSplats' residual).
+the ones the run's own render reproduces (baked into the model).
 """
 
 import os
@@ -39,7 +35,6 @@ from clipgs_jax import sh
 from clipgs_jax.data import scene as scene_lib
 
 LOSS_MAPS_JSON = "loss_maps.json"
-STATIC_SHARE = 0.01   # separation: the static pixels' share over threshold
 LOSS_MAPS_PNG = "loss_maps.png"
 PANEL_INCHES = 2.0
 _SHORT = {"masked_fraction": "masked", "transient_fraction": "transient",
@@ -121,36 +116,6 @@ def contrast_counts(photo: np.ndarray, render: np.ndarray,
   return np.array([np.count_nonzero(truth),
                    np.count_nonzero(truth & reachable),
                    np.count_nonzero(truth & reachable & fitted)], np.int64)
-
-
-def separation(residuals: np.ndarray, truth: np.ndarray,
-               static_share: float = STATIC_SHARE) -> float | None:
-  """The share of the `truth` pixels whose residual is over the threshold
-  that `static_share` of the other pixels exceed (None: no truth or no
-  static pixel). residuals: float [N] of any views' pixels; truth: bool
-  [N]."""
-  if truth.all() or not truth.any():
-    return None
-  threshold = np.quantile(residuals[~truth], 1.0 - static_share)
-  return float(np.mean(residuals[truth] > threshold))
-
-
-def separations(state, cfg, views) -> dict:
-  """{"static_share", "residual", "mean_abs"}: separation() over every
-  training view's pixels with the final model, for residual.residual and
-  for the mean over channels of |render - photo|."""
-  ours, plain, truths = [], [], []
-  for i, (render, _, _) in enumerate(
-      evaluation.renders(state.params, state.alive, views, cfg)):
-    photo = scene_lib.crop(views, i, views.images[i])
-    ours.append(np.asarray(residual.residual(render, photo)).ravel())
-    plain.append(np.abs(np.asarray(render) - photo).mean(-1).ravel())
-    truths.append(scene_lib.crop(views, i, np.asarray(views.masks[i], bool))
-                  .ravel())
-  truth = np.concatenate(truths)
-  return {"static_share": STATIC_SHARE,
-          "residual": separation(np.concatenate(ours), truth),
-          "mean_abs": separation(np.concatenate(plain), truth)}
 
 
 def same_cameras(a, b) -> bool:
@@ -247,7 +212,6 @@ def loss_map_report(workdir: str, count: int = 3,
     pooled |= evaluation.confusion_scores(totals)
   if by_stage:
     pooled["stages"] = stage_summary(steps)
-    pooled["separation"] = separations(state, cfg, views)
   if clean_run is not None:
     pooled["contrast"] = contrast(state, cfg, views, clean_run)
   worst = (worst_views(scores, count) if views.masks is not None else

@@ -319,10 +319,6 @@ def test_loss_map_report(residual_run):
   assert recalls == sorted(recalls, reverse=True)
   assert stages["alpha"]["recall"] == pytest.approx(quality["recall"])
   assert "recall after each step" in proc.stdout
-  sep = out["pooled"]["separation"]
-  assert sep["static_share"] == loss_maps.STATIC_SHARE
-  assert 0.0 <= sep["residual"] <= 1.0 and 0.0 <= sep["mean_abs"] <= 1.0
-  assert "static pixels exceed" in proc.stdout
   for name in out["worst"]["clean_most_masked"]:
     assert out["per_view"][name]["transient_fraction"] == 0.0
   assert len(out["worst"]["lowest_iou"]) == 2
@@ -345,18 +341,6 @@ def test_contrast_counts():
   np.testing.assert_array_equal(
       loss_maps.contrast_counts(photo, render, behind, truth, 0.15),
       [3, 2, 1])
-
-
-def test_separation():
-  # Static residuals 0.00, 0.01, ..., 0.99: 1 % of them exceed 0.98 (the
-  # 0.99 quantile, 0.9801); two of the four transient pixels are above.
-  static = np.arange(100) / 100.0
-  res = np.concatenate([static, [0.5, 0.98, 0.985, 1.2]])
-  truth = np.arange(104) >= 100
-  assert loss_maps.separation(res, truth) == 0.5
-  assert loss_maps.separation(res, truth, 0.5) == 1.0
-  assert loss_maps.separation(res, np.zeros(104, bool)) is None
-  assert loss_maps.separation(res, np.ones(104, bool)) is None
 
 
 def test_loss_map_contrast_against_a_clean_run(residual_run):
