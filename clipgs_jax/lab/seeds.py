@@ -153,13 +153,16 @@ def seed_table(runs: list[dict], num_unstable: int = UNSTABLE_VIEWS
       first = next(iter(seeds.values()))
       base = table.CLEAN if first["clean_views"] else table.VANILLA
       base_runs = by_row.get(base, {}) if row != base else {}
-      paired = sorted(set(seeds) & set(base_runs))
+      paired = [s for s in sorted(set(seeds) & set(base_runs))
+                if seeds[s]["psnr"] is not None
+                and base_runs[s]["psnr"] is not None]
       delta = {s: seeds[s]["psnr"] - base_runs[s]["psnr"] for s in paired}
 
       def other_views(run):
         return [p for v, p in run["per_view"].items() if v not in left_out]
       rest = [_mean(other_views(seeds[s])) - _mean(other_views(base_runs[s]))
-              for s in paired if other_views(seeds[s])]
+              for s in paired
+              if other_views(seeds[s]) and other_views(base_runs[s])]
       cells.append({
           "benchmark": bench, "row": row,
           "base": base if paired else None,

@@ -98,6 +98,20 @@ def test_one_seed_has_no_spread(roots):
   assert "(one seed)" in seeds.format_markdown(result)
 
 
+def test_a_run_without_psnr_is_not_paired(roots):
+  path = os.path.join(roots[1], BENCH, "vanilla", "metrics.json")
+  with open(path) as f:
+    metrics = json.load(f)
+  metrics["test"]["psnr"] = None     # non-finite in the run: not a number
+  with open(path, "w") as f:
+    json.dump(metrics, f)
+  result = seeds.seed_table(seeds.find_runs(roots))
+  row = [c for c in result["cells"] if c["row"] == "residual_features"][0]
+  assert row["delta"] == pytest.approx({0: 2.0 / 3.0})
+  assert row["delta_std_error"] is None
+  assert "| 0,1 | 23.33 / n/a | 23.33 |" in seeds.format_markdown(result)
+
+
 def test_bad_roots(roots, tmp_path):
   with pytest.raises(ValueError, match=r"s0/bonsai_f1.0/clean are both seed 0 of clean"):
     seeds.find_runs([roots[0], roots[0]])
