@@ -77,7 +77,9 @@ def test_metrics(params, alive, views, cfg: config_lib.Config,
   }
 
 
-def _read_json(path: str, what: str) -> dict:
+def read_json(path: str, what: str) -> dict:
+  """A run folder's JSON file; `what` says what it holds in the error when
+  it is missing."""
   if not os.path.exists(path):
     raise FileNotFoundError(f"{path} is missing ({what}); pass a run folder "
                             "written by experiments/train.py.")
@@ -85,14 +87,19 @@ def _read_json(path: str, what: str) -> dict:
     return json.load(f)
 
 
+def load_config(workdir: str) -> config_lib.Config:
+  """The resolved config a run folder was trained with."""
+  return config_file.from_dict(read_json(os.path.join(workdir, CONFIG_JSON),
+                                         "the resolved config"))
+
+
 def load_run(workdir: str):
   """(run.json dict, resolved config, scene) of a run folder.
 
   A run.json without "train_split" (older runs) means "clutter".
   """
-  run = _read_json(os.path.join(workdir, RUN_JSON), "scene and downscale")
-  cfg = config_file.from_dict(_read_json(os.path.join(workdir, CONFIG_JSON),
-                                        "the resolved config"))
+  run = read_json(os.path.join(workdir, RUN_JSON), "scene and downscale")
+  cfg = load_config(workdir)
   scene = scene_lib.load_scene(run["scene"], downscale=run["downscale"],
                                train_split=run.get("train_split", "clutter"))
   return run, cfg, scene

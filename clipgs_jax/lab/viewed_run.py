@@ -3,7 +3,6 @@ each view's photo, render, transient map and mask (host numpy, no GUI)."""
 
 import dataclasses
 import functools
-import json
 import os
 from typing import Any
 
@@ -15,7 +14,6 @@ import numpy as np
 from clipgs_jax import camera as camera_lib
 from clipgs_jax import checkpoint
 from clipgs_jax import config as config_lib
-from clipgs_jax import config_file
 from clipgs_jax import evaluation
 from clipgs_jax import gaussians
 from clipgs_jax import guidance
@@ -108,11 +106,6 @@ class ViewedRun:
     return np.asarray(semantic.normalized_scores(self.stats), np.float32)
 
 
-def _read_json(path: str) -> dict:
-  with open(path) as f:
-    return json.load(f)
-
-
 def load(path: str) -> ViewedRun:
   """Reads a run folder: its checkpoint (or else its PLY) and pruned.ply.
 
@@ -127,9 +120,9 @@ def load(path: str) -> ViewedRun:
   if missing:
     raise ValueError(f"{path} is not a run folder (no {', '.join(missing)})"
                      "; pass a folder written by experiments/train.py")
-  info = _read_json(os.path.join(path, run_lib.RUN_JSON))
-  cfg = config_file.from_dict(_read_json(os.path.join(path,
-                                                     run_lib.CONFIG_JSON)))
+  info = run_lib.read_json(os.path.join(path, run_lib.RUN_JSON),
+                           "scene and downscale")
+  cfg = run_lib.load_config(path)
   ckpt = os.path.join(path, train.CHECKPOINT_NAME)
   ply_path = os.path.join(path, run_lib.POINT_CLOUD_PLY)
   stats, maps = None, None
