@@ -11,7 +11,6 @@ smaller than their spread is not a measurement.
 """
 
 import glob
-import json
 import math
 import os
 
@@ -20,13 +19,7 @@ import numpy as np
 from clipgs_jax import run as run_lib
 from clipgs_jax.lab import table
 
-CONFIG_JSON = "config.json"
 UNSTABLE_VIEWS = 3   # test views named per benchmark as the least stable
-
-
-def _read(path: str) -> dict:
-  with open(path) as f:
-    return json.load(f)
 
 
 def find_runs(roots: list[str]) -> list[dict]:
@@ -55,22 +48,20 @@ def find_runs(roots: list[str]) -> list[dict]:
                        "table run (configs/table.py)")
     for path in found:
       workdir = os.path.dirname(path)
-      metrics = _read(path)
-      cfg = _read(os.path.join(workdir, CONFIG_JSON))
-      test = metrics.get("test") or {}
-      quality = (metrics.get("semantic") or {}).get("mask_quality") or {}
-      run = {"benchmark": os.path.basename(os.path.dirname(workdir)),
-             "row": os.path.basename(workdir),
-             "seed": cfg["train"]["seed"],
-             "clean_views": cfg["data"]["train_split"] == "clean",
-             "steps": metrics.get("steps"),
-             "psnr": table.finite(test.get("psnr")),
+      metrics = run_lib.read_json(path, "test metrics")
+      cfg = run_lib.load_config(workdir)
+      bench, row = (os.path.basename(os.path.dirname(workdir)),
+                    os.path.basename(workdir))
+      cell = table.collect_row(bench, row, cfg, metrics)
+      run = {"benchmark": bench, "row": row, "seed": cfg.train.seed,
+             "clean_views": cell["clean_views"], "steps": cell["steps"],
+             "psnr": cell["psnr"],
              "per_view": {k: v["psnr"] for k, v in
-                          (test.get("per_image") or {}).items()},
-             "precision": table.finite(quality.get("precision")),
-             "recall": table.finite(quality.get("recall")),
-             "seconds": table.finite(metrics.get("train_seconds")),
-             "workdir": workdir}
+                          (metrics.get("test") or {}).get(
+                              "per_image", {}).items()},
+             "precision": cell["map_precision"],
+             "recall": cell["map_recall"],
+             "seconds": cell["train_seconds"], "workdir": workdir}
       key = (run["benchmark"], run["row"], run["seed"])
       if key in seen:
         raise ValueError(f"{workdir} and {seen[key]} are both seed "
@@ -159,10 +150,14 @@ def seed_table(runs: list[dict], num_unstable: int = UNSTABLE_VIEWS
       delta = {s: seeds[s]["psnr"] - base_runs[s]["psnr"] for s in paired}
 
       def other_views(run):
-        return [p for v, p in run["per_view"].items() if v not in left_out]
-      rest = [_mean(other_views(seeds[s])) - _mean(other_views(base_runs[s]))
-              for s in paired
-              if other_views(seeds[s]) and other_views(base_runs[s])]
+        return _mean([p for v, p in run["per_view"].items()
+                      if v not in left_out])
+      rest = []
+      for s in paired:
+        mine_rest, base_rest = (other_views(seeds[s]),
+                                other_views(base_runs[s]))
+        if mine_rest is not None and base_rest is not None:
+          rest.append(mine_rest - base_rest)
       cells.append({
           "benchmark": bench, "row": row,
           "base": base if paired else None,

@@ -21,13 +21,14 @@ def _write_run(root, row, seed, views, clean=False, steps=100, recall=None):
   metrics = {"steps": steps, "train_seconds": 10.0 + seed,
              "test": {"psnr": sum(views.values()) / len(views),
                       "per_image": {k: {"psnr": v} for k, v in views.items()}}}
-  if recall is not None:
+  config = {"train": {"seed": seed},
+            "data": {"train_split": "clean" if clean else "clutter"}}
+  if recall is not None:   # a guided row: its config says so
     metrics["semantic"] = {"mask_quality": {"precision": 0.9,
                                             "recall": recall}}
+    config["semantic"] = {"scorer": "residual", "evidence": "pixel"}
   (folder / "metrics.json").write_text(json.dumps(metrics))
-  (folder / "config.json").write_text(json.dumps({
-      "train": {"seed": seed},
-      "data": {"train_split": "clean" if clean else "clutter"}}))
+  (folder / "config.json").write_text(json.dumps(config))
 
 
 def _views(a, b, window):
