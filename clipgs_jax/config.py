@@ -139,6 +139,12 @@ class SemanticConfig:
   #   s_j that a Gaussian's light is transient exceeds this (every scene)
   n_min: float = 10.0          # ... or n_j < n_min and alpha_j < alpha_min;
   alpha_min: float = 0.1       #     n_min is divided by score_every
+  rare_needs_evidence: bool = False  # the n_min clause prunes only rows
+  #   with s_j > 0: some of their light fell on pixels the map calls
+  #   transient (False: the paper). Pixel evidence scores every view, and
+  #   rows a densification just made, or that few views see, sit under
+  #   n_min; without evidence against them they are scene, not ghosts
+  #   (BUILD_NOTES.md, "Transient masks without an oracle")
   accumulate_start: int = 500  # first scored step
   reg_start: int = 2000        # first step with the opacity loss
   prune_start: int = 5000      # first prune after this many steps
@@ -296,7 +302,8 @@ _HOST_TRAIN_FIELDS = ("seed", "log_every", "eval_every", "checkpoint_every")
 # (its own jitted function, guidance.prune), and what builds the scorer
 # (guidance.make_scorer), which the step gets as an argument.
 SEMANTIC_FIELDS_NOT_IN_STEP = (
-    "prune", "tau", "tau_p", "n_min", "alpha_min", "prune_start",
+    "prune", "tau", "tau_p", "n_min", "alpha_min", "rare_needs_evidence",
+    "prune_start",
     "prune_every", "max_prune_fraction", "static_prompts", "clip_variant",
     "dense_input_size", "oracle_saturation")
 

@@ -337,7 +337,8 @@ def prune_thresholds(sem: config_lib.SemanticConfig,
   return {"tau": tau, "n_min": sem.n_min / sem.score_every,
           "alpha_min": sem.alpha_min,
           "min_weight": semantic.MIN_EVIDENCE_WEIGHT if sem.localized
-                        else 0.0}
+                        else 0.0,
+          "rare_needs_evidence": sem.rare_needs_evidence}
 
 
 def prune(state: state_lib.TrainState, *, cfg: config_lib.Config

@@ -166,22 +166,27 @@ def opacity_loss(stats: state_lib.SemanticStats, opacity_logits: jax.Array,
 
 def prune_masks(stats: state_lib.SemanticStats, opacity_logits: jax.Array,
                 alive: jax.Array, *, tau: float, n_min: float,
-                alpha_min: float, min_weight: float = 0.0
+                alpha_min: float, min_weight: float = 0.0,
+                rare_needs_evidence: bool = False
                 ) -> tuple[jax.Array, jax.Array]:
   """Eq. 13, split by condition so each can be counted.
 
   Args:
     min_weight: the semantic condition also needs weight_j >= min_weight
       (pixel evidence: MIN_EVIDENCE_WEIGHT; the paper's rule: 0).
+    rare_needs_evidence: the visibility condition also needs s_j > 0.
   Returns:
     semantic: bool [C], alive, s_j > tau and weight_j >= min_weight.
     visibility: bool [C], alive, not semantic, n_j < n_min and
-      alpha_j < alpha_min. Prune `semantic | visibility`.
+      alpha_j < alpha_min (and s_j > 0 under rare_needs_evidence). Prune
+      `semantic | visibility`.
   """
-  semantic = (alive & (normalized_scores(stats) > tau)
-              & (stats.weight >= min_weight))
+  s = normalized_scores(stats)
+  semantic = alive & (s > tau) & (stats.weight >= min_weight)
   alpha = jax.nn.sigmoid(opacity_logits)
   visibility = alive & ~semantic & (stats.n < n_min) & (alpha < alpha_min)
+  if rare_needs_evidence:
+    visibility &= s > 0
   return semantic, visibility
 
 

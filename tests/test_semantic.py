@@ -146,6 +146,19 @@ class NormalizeLossPruneTest(parameterized.TestCase):
                                   tau=0.015, n_min=10, alpha_min=0.1)
     np.testing.assert_array_equal(vis, [True, False])
 
+  def test_rare_clause_can_need_evidence(self):
+    # Three faint, rarely seen rows: no evidence, a little, unseen. The
+    # paper's clause prunes all three; under rare_needs_evidence only the
+    # row with some light on transient pixels (s_j > 0) goes.
+    stats = _stats([0.0, 0.1, 0.0], [3.0, 3.0, 0.0], weight=[4.0, 4.0, 0.0])
+    logits = jnp.full((3,), -3.0)                        # alpha ~ 0.05
+    kwargs = dict(tau=0.5, n_min=10, alpha_min=0.1)
+    _, vis = semantic.prune_masks(stats, logits, jnp.ones(3, bool), **kwargs)
+    np.testing.assert_array_equal(vis, [True, True, True])
+    _, vis = semantic.prune_masks(stats, logits, jnp.ones(3, bool),
+                                  rare_needs_evidence=True, **kwargs)
+    np.testing.assert_array_equal(vis, [False, True, False])
+
   def test_pixel_evidence_is_a_probability(self):
     stats = state_lib.SemanticStats.zeros(3)
     # Row 0 lies fully on transient pixels, row 1 half, row 2 unseen.
