@@ -64,7 +64,7 @@ def get_config():
   # these 2,500-step runs (BUILD_NOTES.md, "Transient masks without an
   # oracle").
   residual = {"semantic": {"scorer": "residual", "loss_masking": True,
-                           "rare_needs_evidence": True, **pixel}}
+                           **pixel}}
   features = {"semantic": {"features": "alex"}}
   gated = {"semantic": {"residual": True}}
   clean = {"data": {"train_split": "clean"}}
