@@ -143,8 +143,8 @@ class SemanticConfig:
   #   with s_j > 0: some of their light fell on pixels the map calls
   #   transient (False: the paper). Pixel evidence scores every view, and
   #   rows a densification just made, or that few views see, sit under
-  #   n_min; without evidence against them they are scene, not ghosts
-  #   (BUILD_NOTES.md, "Transient masks without an oracle")
+  #   n_min: on bonsai they are mostly scene; not yet the default
+  #   (BUILD_NOTES.md, "Eq. 13's rarely-seen clause")
   accumulate_start: int = 500  # first scored step
   reg_start: int = 2000        # first step with the opacity loss
   prune_start: int = 5000      # first prune after this many steps
@@ -303,9 +303,8 @@ _HOST_TRAIN_FIELDS = ("seed", "log_every", "eval_every", "checkpoint_every")
 # (guidance.make_scorer), which the step gets as an argument.
 SEMANTIC_FIELDS_NOT_IN_STEP = (
     "prune", "tau", "tau_p", "n_min", "alpha_min", "rare_needs_evidence",
-    "prune_start",
-    "prune_every", "max_prune_fraction", "static_prompts", "clip_variant",
-    "dense_input_size", "oracle_saturation")
+    "prune_start", "prune_every", "max_prune_fraction", "static_prompts",
+    "clip_variant", "dense_input_size", "oracle_saturation")
 
 
 def compiled_part(cfg: Config, semantic_dropped: tuple[str, ...] = ()
