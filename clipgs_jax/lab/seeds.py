@@ -57,8 +57,8 @@ def find_runs(roots: list[str]) -> list[dict]:
              "clean_views": cell["clean_views"], "steps": cell["steps"],
              "psnr": cell["psnr"],
              "per_view": {k: v["psnr"] for k, v in
-                          (metrics.get("test") or {}).get(
-                              "per_image", {}).items()},
+                          ((metrics.get("test") or {}).get("per_image")
+                           or {}).items()},
              "precision": cell["map_precision"],
              "recall": cell["map_recall"],
              "seconds": cell["train_seconds"], "workdir": workdir}
