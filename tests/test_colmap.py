@@ -60,6 +60,46 @@ def write_scene(root, names, cams=(("PINHOLE", 64, 48, (50, 50, 32, 24)),),
   return poses
 
 
+def _ring_poses(n, inward=True):
+  """World-to-camera (R [n, 3, 3], t [n, 3]) of a ring looking at the
+  origin, or away from it (a folded orbit) when not `inward`."""
+  poses = [_pose(k, n) for k in range(n)]
+  rot = np.stack([r for r, _ in poses])
+  if not inward:  # turn each camera around its y axis: x and z flip
+    rot = rot * np.array([-1.0, 1.0, -1.0])[None, :, None]
+  eyes = np.stack([-r.T @ t for r, t in poses])
+  return rot, -np.einsum("nij,nj->ni", rot, eyes)
+
+
+def test_facing_fraction_tells_orbit_from_folded():
+  for inward, share in ((True, 1.0), (False, 0.0)):
+    rot, t = _ring_poses(12, inward)
+    centers = -np.einsum("nji,nj->ni", rot, t)
+    assert colmap.facing_fraction(centers, rot[:, 2]) == share
+
+
+def test_fold_warning_names_the_model_and_the_fix():
+  assert colmap.fold_warning(*_ring_poses(12), "m") is None
+  warning = colmap.fold_warning(*_ring_poses(12, inward=False), "m/sparse/0")
+  assert warning.startswith("m/sparse/0: 0% of the 12 cameras face")
+  assert "--prepare=reconstruct" in warning
+  # Too few cameras to tell an orbit: no warning.
+  assert colmap.fold_warning(*_ring_poses(7, inward=False), "m") is None
+
+
+def test_load_model_warns_on_a_folded_orbit(tmp_path, monkeypatch):
+  write_scene(str(tmp_path), [f"{i}.png" for i in range(8)])
+  said = []
+  monkeypatch.setattr(colmap.logging, "warning", said.append)
+  colmap.load_model(str(tmp_path))
+  assert not said  # write_scene's ring looks inward
+  monkeypatch.setattr(colmap, "_pose", lambda image: (
+      np.diag([-1.0, 1.0, -1.0]) @ _pose(image.image_id, 8)[0],
+      np.diag([-1.0, 1.0, -1.0]) @ _pose(image.image_id, 8)[1]))
+  colmap.load_model(str(tmp_path))
+  assert len(said) == 1 and "folded inside out" in said[0]
+
+
 def _one_line_error(exc_info, *needles):
   msg = str(exc_info.value)
   assert "\n" not in msg, msg

@@ -1,4 +1,4 @@
-"""data.reconstruct: input checks, the orbit check, real SfM."""
+"""data.reconstruct: input checks, real SfM (the orbit check: test_colmap)."""
 
 import os
 
@@ -11,18 +11,6 @@ import shared_data  # tests/, on sys.path under pytest
 
 DATA = shared_data.DATA
 needs_data = shared_data.needs_data("bird")
-
-
-def _ring(n, inward):
-  az = 2 * np.pi * np.arange(n) / n
-  centers = np.stack([3 * np.cos(az), 3 * np.sin(az), np.ones(n)], axis=1)
-  axes = -centers / np.linalg.norm(centers, axis=1, keepdims=True)
-  return centers, axes if inward else -axes
-
-
-def test_facing_fraction_tells_orbit_from_folded():
-  assert reconstruct.facing_fraction(*_ring(12, inward=True)) == 1.0
-  assert reconstruct.facing_fraction(*_ring(12, inward=False)) == 0.0
 
 
 def test_check_inputs_names_the_problem(tmp_path):

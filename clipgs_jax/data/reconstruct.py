@@ -8,8 +8,8 @@ symlink images -> the photos, so it loads like any COLMAP scene
 Why global mapping: on the shared 98-frame bonsai orbit, incremental
 mapping folds the loop and returns cameras that look *away* from the
 object they all photograph; global mapping recovers the orbit (numbers in
-BUILD_NOTES.md, "Bonsai poses"). `facing_fraction` is the quick check that
-caught it.
+BUILD_NOTES.md, "Bonsai poses"). `colmap.facing_fraction` is the quick
+check that caught it, and the loader warns on such a model.
 """
 
 import os
@@ -19,6 +19,8 @@ import time
 from absl import logging
 import numpy as np
 import pycolmap
+
+from clipgs_jax.data import colmap
 
 SEED = 0   # feature matching RANSAC and the global mapper
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
@@ -56,14 +58,6 @@ def centers_and_axes(rec: pycolmap.Reconstruction):
     centers.append(image.projection_center())
     axes.append(rotation.T @ np.array([0.0, 0.0, 1.0]))
   return np.asarray(centers), np.asarray(axes)
-
-
-def facing_fraction(centers: np.ndarray, axes: np.ndarray) -> float:
-  """Share of cameras whose optical axis points towards the centre of the
-  camera positions: ~1 for an object-centred orbit, ~0 when it is folded
-  inside out (not meaningful for forward-facing or panorama captures)."""
-  to_mid = centers.mean(axis=0) - centers
-  return float(np.mean(np.sum(axes * to_mid, axis=1) > 0))
 
 
 def _log_stage(stage: str, tic: float) -> float:
@@ -129,4 +123,5 @@ def summary(rec: pycolmap.Reconstruction) -> str:
   return (f"{rec.num_reg_images()} photos registered, {rec.num_points3D()} "
           f"points, mean reprojection error {error:.3f} px; cameras facing "
           f"the centre of the camera positions: "
-          f"{facing_fraction(*centers_and_axes(rec)):.0%}; cameras: {cams}")
+          f"{colmap.facing_fraction(*centers_and_axes(rec)):.0%}; "
+          f"cameras: {cams}")
