@@ -73,9 +73,8 @@ def _ring_poses(n, inward=True):
 
 def test_facing_fraction_tells_orbit_from_folded():
   for inward, share in ((True, 1.0), (False, 0.0)):
-    rot, t = _ring_poses(12, inward)
-    centers = -np.einsum("nji,nj->ni", rot, t)
-    assert colmap.facing_fraction(centers, rot[:, 2]) == share
+    centers, axes = colmap.centers_and_axes(*_ring_poses(12, inward))
+    assert colmap.facing_fraction(centers, axes) == share
 
 
 def test_fold_warning_names_the_model_and_the_fix():

@@ -256,6 +256,20 @@ def _undistort(sparse_dir: str, image_dir: str, names, cache_dir: str) -> str:
   return final
 
 
+def poses(images) -> tuple[np.ndarray, np.ndarray]:
+  """World-to-camera R [N, 3, 3] and t [N, 3] of posed pycolmap images."""
+  pairs = [_pose(im) for im in images]
+  return np.stack([r for r, _ in pairs]), np.stack([t for _, t in pairs])
+
+
+def centers_and_axes(rotations: np.ndarray, translations: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+  """Camera centres -R^T t [N, 3] and unit optical axes R^T e_z [N, 3] in
+  world space, from world-to-camera poses."""
+  return (-np.einsum("nji,nj->ni", rotations, translations),
+          rotations[:, 2, :])
+
+
 def facing_fraction(centers: np.ndarray, axes: np.ndarray) -> float:
   """Share of cameras whose optical axis points towards the centre of the
   camera positions: ~1 for an object-centred orbit, ~0 when it is folded
@@ -275,8 +289,7 @@ def fold_warning(rotations: np.ndarray, translations: np.ndarray,
   half and are left alone."""
   if len(rotations) < _FOLD_MIN_VIEWS:
     return None
-  centers = -np.einsum("nji,nj->ni", rotations, translations)  # -R^T t
-  share = facing_fraction(centers, rotations[:, 2, :])  # R^T e_z: the axis
+  share = facing_fraction(*centers_and_axes(rotations, translations))
   if share >= _FOLDED_BELOW:
     return None
   return (f"{where}: {share:.0%} of the {len(rotations)} cameras face the "
@@ -329,9 +342,7 @@ def load_model(scene_path: str, cache_dir: str | None = None,
                          "distorted after undistortion; delete the cache "
                          f"folder {workspace} and retry.")
     _check_images_exist(image_dir, images)
-  poses = [_pose(im) for im in images]
-  rotations = np.stack([p[0] for p in poses])
-  translations = np.stack([p[1] for p in poses])
+  rotations, translations = poses(images)
   warning = fold_warning(rotations, translations, sparse_dir)
   if warning:
     logging.warning(warning)

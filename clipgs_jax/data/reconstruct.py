@@ -50,16 +50,6 @@ def check_inputs(image_dir: str, scene_dir: str, camera_model: str
   return names
 
 
-def centers_and_axes(rec: pycolmap.Reconstruction):
-  """Camera centres [N, 3] and unit optical axes [N, 3] in world space."""
-  centers, axes = [], []
-  for image in rec.images.values():
-    rotation = image.cam_from_world().rotation.matrix()
-    centers.append(image.projection_center())
-    axes.append(rotation.T @ np.array([0.0, 0.0, 1.0]))
-  return np.asarray(centers), np.asarray(axes)
-
-
 def _log_stage(stage: str, tic: float) -> float:
   """Logs the seconds since `tic` as the stage's own time; returns now."""
   now = time.perf_counter()
@@ -120,8 +110,9 @@ def summary(rec: pycolmap.Reconstruction) -> str:
   cams = ", ".join(f"{c.model.name} {np.round(c.params, 4).tolist()}"
                    for c in rec.cameras.values())
   error = rec.compute_mean_reprojection_error()
+  facing = colmap.facing_fraction(*colmap.centers_and_axes(
+      *colmap.poses(rec.images.values())))
   return (f"{rec.num_reg_images()} photos registered, {rec.num_points3D()} "
           f"points, mean reprojection error {error:.3f} px; cameras facing "
           f"the centre of the camera positions: "
-          f"{colmap.facing_fraction(*centers_and_axes(rec)):.0%}; "
-          f"cameras: {cams}")
+          f"{facing:.0%}; cameras: {cams}")
