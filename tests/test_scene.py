@@ -366,12 +366,18 @@ def _robustnerf_scene(root, clean: bool):
     images.write_png(str(root / "masks" / f"2clutter{i}.png"), mask)
 
 
-def test_pack_is_the_loaded_scene_bit_for_bit(tmp_path):
+def test_pack_is_the_loaded_scene_bit_for_bit(tmp_path, monkeypatch):
   _robustnerf_scene(tmp_path / "s", clean=True)
   cache = str(tmp_path / "cache")
   out = str(tmp_path / "s.npz")
+  reads = []
+  load_model = colmap.load_model
+  monkeypatch.setattr(colmap, "load_model",
+                      lambda *a, **k: reads.append(a) or load_model(*a, **k))
   assert scene.pack(str(tmp_path / "s"), out, 2, cache_dir=cache) == (
       "clutter", "clean")
+  assert len(reads) == 1        # both splits from one read of the model
+  monkeypatch.undo()
   for split in ("clutter", "clean"):
     packed = scene.load_scene(out, downscale=2, train_split=split)
     _assert_same_scene(_load(tmp_path / "s", downscale=2, train_split=split),

@@ -351,7 +351,14 @@ def load_scene(path: str, downscale: int = 1, train_split: str = "clutter",
   if path.endswith(PACK_SUFFIX):
     return _load_pack(path, downscale, train_split, train_views)
   cache_dir = cache_dir or colmap.default_cache_dir(path)
-  model = colmap.load_model(path, cache_dir=cache_dir)
+  return _load_folder(colmap.load_model(path, cache_dir=cache_dir), path,
+                      downscale, train_split, cache_dir, train_views)
+
+
+def _load_folder(model: colmap.Model, path: str, downscale: int,
+                 train_split: str, cache_dir: str,
+                 train_views: Callable[[int], bool] | None) -> Scene:
+  """`load_scene` of the folder scene `path` whose model is `model`."""
   train_idx, test_idx = _split_names(model.names, train_split,
                                      model.sparse_dir)
   keep = None if train_views is None else {
@@ -390,10 +397,10 @@ def _stack(cams: list[camera.Camera]) -> camera.Camera:
       width=max(c.width for c in cams), height=max(c.height for c in cams))
 
 
-def _train_splits(path: str, cache_dir: str | None) -> tuple[str, ...]:
+def _train_splits(model: colmap.Model) -> tuple[str, ...]:
   """The train splits of a folder scene: those named in a RobustNeRF one,
   () for other scenes (their train_split is ignored)."""
-  tokens = _name_tokens(colmap.load_model(path, cache_dir=cache_dir).names)
+  tokens = _name_tokens(model.names)
   return tuple(t for t in TRAIN_SPLITS if any(t in found for found in tokens))
 
 
@@ -430,11 +437,14 @@ def pack(path: str, out: str, downscale: int,
   """
   if not out.endswith(PACK_SUFFIX):
     raise ValueError(f"pack output {out} must end in {PACK_SUFFIX}.")
-  splits = _train_splits(path, cache_dir)
+  images.downscaled_size(1, 1, downscale)      # validates the factor
+  cache_dir = cache_dir or colmap.default_cache_dir(path)
+  model = colmap.load_model(path, cache_dir=cache_dir)   # read once
+  splits = _train_splits(model)
   arrays = {"format": np.array(PACK_FORMAT), "downscale": np.array(downscale),
             "splits": np.array(splits, dtype=str)}
   for split in splits or TRAIN_SPLITS[:1]:
-    scene = load_scene(path, downscale, split, cache_dir)
+    scene = _load_folder(model, path, downscale, split, cache_dir, None)
     arrays |= _views_arrays(f"train.{split if splits else 'all'}",
                             scene.train)
   arrays |= _views_arrays("test", scene.test)
