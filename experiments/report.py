@@ -11,6 +11,7 @@
   python experiments/report.py --report=curve --runs=DIR1,DIR2
       --curve_png=curve.png [--labels=a,b] [--x_axis=seconds|step]
   python experiments/report.py --report=seeds --runs=ROOT_S0,ROOT_S1,...
+      [--set_apart=VIEW[,VIEW...]]
   python experiments/report.py --report=figures --runs=TABLE_ROOT
       --benchmarks=DIR[,DIR...] --figures_dir=DIR [--views=3]
       [--figure_downscale=K]
@@ -42,7 +43,9 @@ seeds: the table roots of several seeds (each a configs/table.py
   --workdir, one --config.train.seed) as one table: every cell's PSNR per
   seed, its mean, its difference from vanilla (clean for a control row)
   paired by seed, and per benchmark the test views that move most between
-  seeds (clipgs_jax/lab/seeds.py).
+  seeds; the difference again over the other test views, and with
+  --set_apart (test image names) over those views apart from the rest
+  (clipgs_jax/lab/seeds.py).
 figures: per benchmark, a render grid and error curves of the table's
   runs in TABLE_ROOT/<benchmark name>/<row>/ (clipgs_jax/lab/figures.py).
 """
@@ -90,6 +93,9 @@ _FIGURES_DIR = flags.DEFINE_string("figures_dir", None,
 _VIEWS = flags.DEFINE_integer("views", 3, "figures: test views (grid rows) "
                               "per benchmark; loss_maps: views per failure "
                               "kind.")
+_SET_APART = flags.DEFINE_list(
+    "set_apart", None, "seeds: test views (image names, e.g. "
+    "1extra003.png) whose difference is reported apart from the others'.")
 _CLEAN_RUN = flags.DEFINE_string(
     "clean_run", None, "loss_maps: the run folder of the scene's clean twin "
     "(the same cameras, no transients): what lies behind each transient.")
@@ -197,7 +203,7 @@ def main(argv):
     for root in _RUNS.value:
       cli.require_folder("runs", root)
     print(seeds.format_markdown(seeds.seed_table(
-        seeds.find_runs(_RUNS.value))), end="")
+        seeds.find_runs(_RUNS.value), set_apart=_SET_APART.value)), end="")
   elif what == "curve":
     cli.require(_CURVE_PNG.value is not None, "curve_png", None,
                 "is needed: pass the PNG to write")

@@ -7,7 +7,9 @@ cell's base row (vanilla; clean for a control row on the clean views)
 paired by seed, since runs of one seed draw the same order of views. Per
 benchmark it names the test views whose PSNR moves most between seeds of
 one row: a handful of such views can decide a cell, and a difference
-smaller than their spread is not a measurement.
+smaller than their spread is not a measurement. The same difference is
+also taken over the other test views, and, for views set apart by name
+(a region of the scene that one mechanism decides), over those views.
 """
 
 import glob
@@ -106,30 +108,49 @@ def unstable_views(runs: list[dict], count: int = UNSTABLE_VIEWS
   return sorted(spread.items(), key=lambda kv: (-kv[1], kv[0]))[:count]
 
 
-def seed_table(runs: list[dict], num_unstable: int = UNSTABLE_VIEWS
-               ) -> dict:
+def _check_set_apart(runs: list[dict], set_apart: list[str]) -> None:
+  """Raises ValueError unless every view set apart is a test view of every
+  run."""
+  for run in runs:
+    missing = [v for v in set_apart if v not in run["per_view"]]
+    if missing:
+      raise ValueError(
+          f"--set_apart: {', '.join(missing)} is not a test view of "
+          f"{run['workdir']} (its views: {', '.join(sorted(run['per_view']))}"
+          f"); name test views that every benchmark of --runs has")
+
+
+def seed_table(runs: list[dict], num_unstable: int = UNSTABLE_VIEWS,
+               set_apart: list[str] | None = None) -> dict:
   """The cells of the runs over their seeds, and each benchmark's views.
 
   Args:
     runs: find_runs' list.
     num_unstable: how many of each benchmark's least stable test views
-      to name and to leave out of "delta_without_unstable".
+      to name and, without set_apart, to leave out of "delta_other_views".
+    set_apart: test views (image names) to leave out of
+      "delta_other_views" instead, with their own "delta_set_apart".
 
   Returns:
     {"cells": [{"benchmark", "row", "base", "seeds", "psnr" (per seed),
     "mean", "delta" (paired with the base row, per seed it shares),
-    "mean_delta", "delta_std_error", "delta_without_unstable" (the
-    paired difference over the other test views), "precision", "recall",
-    "seconds" (means)}], "unstable": {benchmark: [(view, spread)]}}.
+    "mean_delta", "delta_std_error", "delta_other_views" (the paired
+    difference over the test views not left out), "delta_set_apart" (over
+    the views set apart; None without them), "precision", "recall",
+    "seconds" (means)}], "unstable": {benchmark: [(view, spread)]},
+    "set_apart": the views set apart, or []}.
 
   Raises:
-    ValueError: when the seeds of one cell ran different step counts.
+    ValueError: when the seeds of one cell ran different step counts, or
+      a view set apart is not a test view of a run.
   """
   cells, unstable = [], {}
+  set_apart = list(set_apart or [])
+  _check_set_apart(runs, set_apart)
   for bench in sorted({r["benchmark"] for r in runs}):
     mine = [r for r in runs if r["benchmark"] == bench]
     unstable[bench] = unstable_views(mine, num_unstable)
-    left_out = {v for v, _ in unstable[bench]}
+    left_out = set(set_apart) or {v for v, _ in unstable[bench]}
     by_row = {}
     for run in sorted(mine, key=lambda r: r["seed"]):
       by_row.setdefault(run["row"], {})[run["seed"]] = run
@@ -149,15 +170,16 @@ def seed_table(runs: list[dict], num_unstable: int = UNSTABLE_VIEWS
                 and base_runs[s]["psnr"] is not None]
       delta = {s: seeds[s]["psnr"] - base_runs[s]["psnr"] for s in paired}
 
-      def other_views(run):
-        return _mean([p for v, p in run["per_view"].items()
-                      if v not in left_out])
-      rest = []
-      for s in paired:
-        mine_rest, base_rest = (other_views(seeds[s]),
-                                other_views(base_runs[s]))
-        if mine_rest is not None and base_rest is not None:
-          rest.append(mine_rest - base_rest)
+      def views_delta(keep):
+        """The paired difference of the mean PSNR over views `keep` takes."""
+        out = []
+        for s in paired:
+          mine_mean, base_mean = (
+              _mean([p for v, p in run["per_view"].items() if keep(v)])
+              for run in (seeds[s], base_runs[s]))
+          if mine_mean is not None and base_mean is not None:
+            out.append(mine_mean - base_mean)
+        return _mean(out)
       cells.append({
           "benchmark": bench, "row": row,
           "base": base if paired else None,
@@ -166,20 +188,25 @@ def seed_table(runs: list[dict], num_unstable: int = UNSTABLE_VIEWS
           "mean": _mean([r["psnr"] for r in seeds.values()]),
           "delta": delta, "mean_delta": _mean(list(delta.values())),
           "delta_std_error": _std_error(list(delta.values())),
-          "delta_without_unstable": _mean(rest),
+          "delta_other_views": views_delta(lambda v: v not in left_out),
+          "delta_set_apart": (views_delta(lambda v: v in left_out)
+                              if set_apart else None),
           "precision": _mean([r["precision"] for r in seeds.values()]),
           "recall": _mean([r["recall"] for r in seeds.values()]),
           "seconds": _mean([r["seconds"] for r in seeds.values()])})
-  return {"cells": cells, "unstable": unstable}
+  return {"cells": cells, "unstable": unstable, "set_apart": set_apart}
 
 
 def format_markdown(result: dict) -> str:
   """The seed table as Markdown, one line per benchmark on its views."""
   f = table.fmt
+  apart = result["set_apart"]
   lines = [
       "| benchmark | row | seeds | PSNR per seed | mean | Δ per seed | "
-      "mean Δ ± s.e. | Δ, other views | map P / R | train s |",
-      "|---|---|---|---|---:|---|---:|---:|---:|---:|"]
+      "mean Δ ± s.e. | Δ, other views | " + ("Δ, set apart | " if apart
+                                             else "") + "map P / R | train s |",
+      "|---|---|---|---|---:|---|---:|---:|" + ("---:|" if apart else "")
+      + "---:|---:|"]
   for c in result["cells"]:
     per_seed = " / ".join(f(c["psnr"][s], ".2f") for s in c["seeds"])
     delta = " / ".join(f(c["delta"][s], "+.2f") for s in sorted(c["delta"]))
@@ -192,12 +219,17 @@ def format_markdown(result: dict) -> str:
         f"| {c['benchmark']} | {c['row']} | "
         f"{','.join(map(str, c['seeds']))} | {per_seed} | "
         f"{f(c['mean'], '.2f')} | {delta or '—'} | {mean_delta} | "
-        f"{f(c['delta_without_unstable'], '+.2f', '—')} | {pr} | "
+        f"{f(c['delta_other_views'], '+.2f', '—')} | "
+        + (f"{f(c['delta_set_apart'], '+.2f', '—')} | " if apart else "")
+        + f"{pr} | "
         f"{f(c['seconds'], '.0f')} |")
   lines.append("")
   lines.append("Δ: the row minus its base (vanilla, or clean for a control "
                "row) of the same seed. Δ, other views: the same over the "
-               "test views left after the least stable ones below.")
+               "test views left after " + (
+                   f"those set apart ({', '.join(apart)}); Δ, set apart: "
+                   "over those views." if apart else
+                   "the least stable ones below."))
   for bench, views in result["unstable"].items():
     named = ", ".join(f"{v} ({s:.2f} dB)" for v, s in views) or "(one seed)"
     lines.append(f"- {bench}: the test views that move most between seeds "

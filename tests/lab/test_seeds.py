@@ -82,13 +82,36 @@ def test_other_views_leave_out_the_unstable_ones(roots):
   result = seeds.seed_table(seeds.find_runs(roots))
   # Three views, three named unstable: nothing is left to compare.
   row = [c for c in result["cells"] if c["row"] == "residual_features"][0]
-  assert row["delta_without_unstable"] is None
+  assert row["delta_other_views"] is None
+  assert row["delta_set_apart"] is None
   result = seeds.seed_table(seeds.find_runs(roots), num_unstable=1)
   row = [c for c in result["cells"] if c["row"] == "residual_features"][0]
   # Window variances over seeds: 8 in three rows, 24.5 in the row.
   assert result["unstable"][BENCH] == [("window.png", pytest.approx(
       ((8.0 + 24.5 + 8.0 + 8.0) / 4.0) ** 0.5))]
-  assert row["delta_without_unstable"] == pytest.approx(1.0)
+  assert row["delta_other_views"] == pytest.approx(1.0)
+
+
+def test_views_set_apart(roots):
+  runs = seeds.find_runs(roots)
+  result = seeds.seed_table(runs, set_apart=["window.png", "b.png"])
+  cells = {c["row"]: c for c in result["cells"]}
+  row = cells["residual_features"]
+  # a.png: +1 on both seeds; window and b: (0 + 1) / 2 on s0, (-3 + 1) / 2
+  # on s1, mean -0.25; whatever the least stable views are.
+  assert row["delta_other_views"] == pytest.approx(1.0)
+  assert row["delta_set_apart"] == pytest.approx(-0.25)
+  assert cells["residual_features_clean"]["delta_set_apart"] == (
+      pytest.approx(-0.5))
+  assert cells["vanilla"]["delta_set_apart"] is None
+  text = seeds.format_markdown(result)
+  assert "| Δ, other views | Δ, set apart |" in text
+  assert "| +0.17 ± 0.50 | +1.00 | -0.25 | 0.90 / 0.55 |" in text
+  assert "those set apart (window.png, b.png)" in text
+  with pytest.raises(ValueError, match=r"--set_apart: door.png is not a "
+                     r"test view of .*s0/bonsai_f1.0/clean \(its views: "
+                     r"a.png, b.png, window.png\)"):
+    seeds.seed_table(runs, set_apart=["door.png", "a.png"])
 
 
 def test_one_seed_has_no_spread(roots):
@@ -138,6 +161,13 @@ def test_cli(roots, tmp_path):
           "22.83 | +0.67 / -0.33 | +0.17 ± 0.50 | — | 0.90 / 0.55 | 10 |"
           ) in out.stdout
   assert "window.png (3.48 dB)" in out.stdout
+  out = subprocess.run(cmd + ["--runs=" + ",".join(roots),
+                              "--set_apart=door.png"],
+                       capture_output=True, text=True, env=env, check=False,
+                       timeout=300)
+  assert out.returncode != 0
+  assert out.stderr.strip().splitlines()[-1].startswith(
+      "error: --set_apart: door.png is not a test view of ")
   missing = tmp_path / "nowhere"
   out = subprocess.run(cmd + [f"--runs={missing}"], capture_output=True,
                        text=True, env=env, check=False, timeout=300)
