@@ -133,11 +133,6 @@ class SemanticConfig:
   static_prompts: tuple[str, ...] = PAPER_STATIC_PROMPTS  # S, logged only
   beta: float = 0.1            # accumulation rate (eq. 8)
   lambda_c: float = 0.01       # CLIP opacity loss weight (eq. 11; 0: off)
-  loss_min_score: float = 0.0  # the opacity loss counts only rows with
-  #   s_j above this (0: every row, the paper). Adam makes the loss's pull
-  #   on a row's opacity nearly independent of s_j's size, so any s_j > 0
-  #   empties rows few views show (BUILD_NOTES.md, "What empties bonsai's
-  #   window")
   prune: bool = True           # eq. 13 pruning (False: an ablation)
   tau: float = 0.015           # prune when s_j > tau (eq. 13), image evidence
   tau_p: float = 0.5           # pixel evidence: prune when the probability

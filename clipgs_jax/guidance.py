@@ -269,8 +269,7 @@ def opacity_regularizer(stats: state_lib.SemanticStats,
   """Eqs. 11-12 from reg_start on, 0 before and for reset_quiet steps
   after each opacity reset."""
   sem = cfg.semantic
-  loss = semantic.opacity_loss(stats, opacity_logits, alive, sem.lambda_c,
-                               sem.loss_min_score)
+  loss = semantic.opacity_loss(stats, opacity_logits, alive, sem.lambda_c)
   quiet = densify.since_reset_within(step, sem.reset_quiet, cfg)
   return jnp.where((step >= sem.reg_start) & ~quiet, loss, 0.0)
 

@@ -156,14 +156,9 @@ def normalized_scores(stats: state_lib.SemanticStats) -> jax.Array:
 
 
 def opacity_loss(stats: state_lib.SemanticStats, opacity_logits: jax.Array,
-                 alive: jax.Array, weight: float,
-                 min_score: float = 0.0) -> jax.Array:
-  """Eqs. 11-12: lambda_c * mean over alive j of stop_grad(s_j) * alpha_j.
-
-  Rows with s_j <= min_score count 0 (min_score 0: the paper).
-  """
+                 alive: jax.Array, weight: float) -> jax.Array:
+  """Eqs. 11-12: lambda_c * mean over alive j of stop_grad(s_j) * alpha_j."""
   s = jax.lax.stop_gradient(normalized_scores(stats))
-  s = jnp.where(s > min_score, s, 0.0)
   alpha = jax.nn.sigmoid(opacity_logits)
   count = jnp.maximum(jnp.sum(alive), 1)
   return weight * jnp.sum(jnp.where(alive, s * alpha, 0.0)) / count

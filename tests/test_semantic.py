@@ -106,16 +106,6 @@ class NormalizeLossPruneTest(parameterized.TestCase):
     np.testing.assert_allclose(g, [0.01 * 0.02 * 0.25 / 2] * 2 + [0.0],
                                rtol=1e-5)
 
-  def test_opacity_loss_min_score(self):
-    stats = _stats([0.1, 0.6, 0.9], [1.0, 1.0, 1.0])  # s = 0.1, 0.6, 0.9
-    logits = jnp.zeros(3)
-    alive = jnp.ones(3, bool)
-    g = jax.grad(lambda l: semantic.opacity_loss(
-        stats, l, alive, 0.01, min_score=0.5))(logits)
-    # Only rows above 0.5 are pulled; the count of alive rows stays 3.
-    np.testing.assert_allclose(
-        g, [0.0, 0.01 * 0.6 * 0.25 / 3, 0.01 * 0.9 * 0.25 / 3], rtol=1e-5)
-
   def test_prune_hand_computed(self):
     stats = _stats([0.04, 0.0, 0.0, 0.04, 0.0], [2.0, 3.0, 20.0, 2.0, 3.0])
     alpha = jnp.array([0.9, 0.05, 0.05, 0.9, 0.5])

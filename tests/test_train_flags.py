@@ -127,7 +127,6 @@ class SemanticCheckTest(parameterized.TestCase):
       ("oracle_saturation", 0.0, "oracle_saturation="),
       ("distractor_prompts", ("a photo of a person", " "), "prompt is empty"),
       ("evidence", "patch", "evidence="), ("tau_p", 1.5, "tau_p="),
-      ("loss_min_score", -0.1, "loss_min_score="),
       ("max_prune_fraction", 0.0, "max_prune_fraction="),
       ("loss_masking", True, "loss_masking needs evidence='pixel'"),
       ("dense_input_size", 0, "dense_input_size="),
