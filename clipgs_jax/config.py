@@ -133,6 +133,11 @@ class SemanticConfig:
   static_prompts: tuple[str, ...] = PAPER_STATIC_PROMPTS  # S, logged only
   beta: float = 0.1            # accumulation rate (eq. 8)
   lambda_c: float = 0.01       # CLIP opacity loss weight (eq. 11; 0: off)
+  evidence_decay: float = 1.0  # pixel evidence: acc_j and weight_j are
+  #   multiplied by this each step before the step's sums are added, so
+  #   s_j is the share over recent views (1.0: over the whole run, as
+  #   eq. 10). Early maps mark a lagging fit that later maps release
+  #   (BUILD_NOTES.md, "Forgetting early evidence")
   prune: bool = True           # eq. 13 pruning (False: an ablation)
   tau: float = 0.015           # prune when s_j > tau (eq. 13), image evidence
   tau_p: float = 0.5           # pixel evidence: prune when the probability

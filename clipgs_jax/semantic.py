@@ -124,6 +124,18 @@ def accumulate_pixel(stats: state_lib.SemanticStats, evidence: jax.Array,
       n=stats.n + on * visible.astype(dtype))
 
 
+def decayed(stats: state_lib.SemanticStats,
+            factor: float) -> state_lib.SemanticStats:
+  """acc_j and weight_j times `factor` (n_j, a count of views, unchanged):
+  applied each step before the step's sums, s_j = acc_j / weight_j is a
+  share over recent views with a horizon of about 1 / (1 - factor) steps.
+  factor 1.0 returns `stats` itself (eq. 10's sums over the whole run).
+  """
+  if factor == 1.0:
+    return stats
+  return stats.replace(acc=stats.acc * factor, weight=stats.weight * factor)
+
+
 def agreement(render: jax.Array, photo: jax.Array,
               tolerance: float = AGREEMENT_TOLERANCE) -> jax.Array:
   """float [H, W] in [0, 1]: 1 - mean_c |render - photo| / tolerance,
