@@ -142,6 +142,10 @@ class SemanticConfig:
   tau: float = 0.015           # prune when s_j > tau (eq. 13), image evidence
   tau_p: float = 0.5           # pixel evidence: prune when the probability
   #   s_j that a Gaussian's light is transient exceeds this (every scene)
+  prune_max_alpha: float = 1.0  # ... and alpha_j <= this (1.0: any
+  #   alpha, the paper). A row the opacity loss has not faded is one that
+  #   unmasked pixels keep opaque: bonsai's window (BUILD_NOTES.md, "Which
+  #   rows eq. 13 takes")
   n_min: float = 10.0          # ... or n_j < n_min and alpha_j < alpha_min;
   alpha_min: float = 0.1       #     n_min is divided by score_every
   rare_needs_evidence: bool = False  # the n_min clause prunes only rows

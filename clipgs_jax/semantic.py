@@ -179,7 +179,7 @@ def opacity_loss(stats: state_lib.SemanticStats, opacity_logits: jax.Array,
 def prune_masks(stats: state_lib.SemanticStats, opacity_logits: jax.Array,
                 alive: jax.Array, *, tau: float, n_min: float,
                 alpha_min: float, min_weight: float = 0.0,
-                rare_needs_evidence: bool = False
+                rare_needs_evidence: bool = False, max_alpha: float = 1.0
                 ) -> tuple[jax.Array, jax.Array]:
   """Eq. 13, split by condition so each can be counted.
 
@@ -187,15 +187,19 @@ def prune_masks(stats: state_lib.SemanticStats, opacity_logits: jax.Array,
     min_weight: the semantic condition also needs weight_j >= min_weight
       (pixel evidence: MIN_EVIDENCE_WEIGHT; the paper's rule: 0).
     rare_needs_evidence: the visibility condition also needs s_j > 0.
+    max_alpha: the semantic condition also needs alpha_j <= max_alpha
+      (1.0: every row, the paper).
   Returns:
-    semantic: bool [C], alive, s_j > tau and weight_j >= min_weight.
+    semantic: bool [C], alive, s_j > tau, weight_j >= min_weight and
+      alpha_j <= max_alpha.
     visibility: bool [C], alive, not semantic, n_j < n_min and
       alpha_j < alpha_min (and s_j > 0 under rare_needs_evidence). Prune
       `semantic | visibility`.
   """
   s = normalized_scores(stats)
-  semantic = alive & (s > tau) & (stats.weight >= min_weight)
   alpha = jax.nn.sigmoid(opacity_logits)
+  semantic = (alive & (s > tau) & (stats.weight >= min_weight)
+              & (alpha <= max_alpha))
   visibility = alive & ~semantic & (stats.n < n_min) & (alpha < alpha_min)
   if rare_needs_evidence:
     visibility &= s > 0

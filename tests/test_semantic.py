@@ -136,6 +136,21 @@ class NormalizeLossPruneTest(parameterized.TestCase):
     np.testing.assert_array_equal(sem, [True, False, False, False, False])
     np.testing.assert_array_equal(vis, [False, True, False, False, False])
 
+  def test_prune_max_alpha_keeps_opaque_rows(self):
+    # Both rows' light fell on transient pixels (s = 0.8); the opaque one
+    # is kept while unmasked views hold its opacity up, and becomes
+    # prunable by eq. 13 in the same state once the opacity loss fades it.
+    stats = _stats([0.8, 0.8], [1.0, 1.0])
+    alpha = jnp.array([0.95, 0.05])
+    logits = jnp.log(alpha / (1 - alpha))
+    alive = jnp.ones(2, bool)
+    sem, _ = semantic.prune_masks(stats, logits, alive, tau=0.5, n_min=0,
+                                  alpha_min=0.0, max_alpha=0.5)
+    np.testing.assert_array_equal(sem, [False, True])
+    sem, _ = semantic.prune_masks(stats, logits, alive, tau=0.5, n_min=0,
+                                  alpha_min=0.0)
+    np.testing.assert_array_equal(sem, [True, True])
+
   @parameterized.named_parameters(("tau_zero", 0.0, [True, True, False]),
                                   ("tau_one", 1.0, [False, False, False]))
   def test_tau_limits(self, tau, expected):
