@@ -146,6 +146,8 @@ class SemanticConfig:
   #   alpha, the paper). A row the opacity loss has not faded is one that
   #   unmasked pixels keep opaque: bonsai's window (BUILD_NOTES.md, "Which
   #   rows eq. 13 takes")
+  score_needs_views: bool = False  # ... and n_j >= n_min (False: the
+  #   paper): the window's rows are seen by a median 7 views
   n_min: float = 10.0          # ... or n_j < n_min and alpha_j < alpha_min;
   alpha_min: float = 0.1       #     n_min is divided by score_every
   rare_needs_evidence: bool = False  # the n_min clause prunes only rows

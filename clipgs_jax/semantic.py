@@ -179,7 +179,8 @@ def opacity_loss(stats: state_lib.SemanticStats, opacity_logits: jax.Array,
 def prune_masks(stats: state_lib.SemanticStats, opacity_logits: jax.Array,
                 alive: jax.Array, *, tau: float, n_min: float,
                 alpha_min: float, min_weight: float = 0.0,
-                rare_needs_evidence: bool = False, max_alpha: float = 1.0
+                rare_needs_evidence: bool = False, max_alpha: float = 1.0,
+                score_needs_views: bool = False
                 ) -> tuple[jax.Array, jax.Array]:
   """Eq. 13, split by condition so each can be counted.
 
@@ -189,6 +190,8 @@ def prune_masks(stats: state_lib.SemanticStats, opacity_logits: jax.Array,
     rare_needs_evidence: the visibility condition also needs s_j > 0.
     max_alpha: the semantic condition also needs alpha_j <= max_alpha
       (1.0: every row, the paper).
+    score_needs_views: the semantic condition also needs n_j >= n_min: a
+      share over fewer views is left to the visibility condition.
   Returns:
     semantic: bool [C], alive, s_j > tau, weight_j >= min_weight and
       alpha_j <= max_alpha.
@@ -200,6 +203,8 @@ def prune_masks(stats: state_lib.SemanticStats, opacity_logits: jax.Array,
   alpha = jax.nn.sigmoid(opacity_logits)
   semantic = (alive & (s > tau) & (stats.weight >= min_weight)
               & (alpha <= max_alpha))
+  if score_needs_views:
+    semantic &= stats.n >= n_min
   visibility = alive & ~semantic & (stats.n < n_min) & (alpha < alpha_min)
   if rare_needs_evidence:
     visibility &= s > 0
