@@ -38,7 +38,6 @@ from clipgs_jax import guidance
 from clipgs_jax import metrics as metrics_lib
 from clipgs_jax import optim
 from clipgs_jax import residual as residual_lib
-from clipgs_jax import semantic as semantic_lib
 from clipgs_jax import sh
 from clipgs_jax import sharding
 from clipgs_jax import state as state_lib
@@ -172,8 +171,7 @@ def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
       max_radius=jnp.maximum(old.max_radius, max_radius))
   semantic_stats, maps = state.semantic, state.maps
   if evidence is not None:
-    semantic_stats = jax.tree.map(jnp.add, semantic_lib.decayed(
-        state.semantic, cfg.semantic.evidence_decay), evidence)
+    semantic_stats = jax.tree.map(jnp.add, state.semantic, evidence)
   if hist is not None:
     maps = view_lib.update_maps(maps, cfg.semantic, histogram=hist)
   metrics = {k: (jnp.mean(v) if k in _MEAN_KEYS else v)

@@ -133,21 +133,10 @@ class SemanticConfig:
   static_prompts: tuple[str, ...] = PAPER_STATIC_PROMPTS  # S, logged only
   beta: float = 0.1            # accumulation rate (eq. 8)
   lambda_c: float = 0.01       # CLIP opacity loss weight (eq. 11; 0: off)
-  evidence_decay: float = 1.0  # pixel evidence: acc_j and weight_j are
-  #   multiplied by this each step before the step's sums are added, so
-  #   s_j is the share over recent views (1.0: over the whole run, as
-  #   eq. 10). Early maps mark a lagging fit that later maps release
-  #   (BUILD_NOTES.md, "Forgetting early evidence")
   prune: bool = True           # eq. 13 pruning (False: an ablation)
   tau: float = 0.015           # prune when s_j > tau (eq. 13), image evidence
   tau_p: float = 0.5           # pixel evidence: prune when the probability
   #   s_j that a Gaussian's light is transient exceeds this (every scene)
-  prune_max_alpha: float = 1.0  # ... and alpha_j <= this (1.0: any
-  #   alpha, the paper). A row the opacity loss has not faded is one that
-  #   unmasked pixels keep opaque: bonsai's window (BUILD_NOTES.md, "Which
-  #   rows eq. 13 takes")
-  score_needs_views: bool = False  # ... and n_j >= n_min (False: the
-  #   paper): the window's rows are seen by a median 7 views
   n_min: float = 10.0          # ... or n_j < n_min and alpha_j < alpha_min;
   alpha_min: float = 0.1       #     n_min is divided by score_every
   rare_needs_evidence: bool = False  # the n_min clause prunes only rows

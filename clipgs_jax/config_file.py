@@ -140,16 +140,6 @@ def _semantic_problems(sem: config_lib.SemanticConfig) -> list[str]:
     problems.append("scorer='clip' with evidence='pixel' needs static "
                     "prompts: p(distractor) is a softmax over D and S, which "
                     "is identically 1 without S")
-  if not 0.0 < sem.evidence_decay <= 1.0:
-    problems.append(f"evidence_decay={sem.evidence_decay} is not in (0, 1] "
-                    "(1.0: no decay)")
-  if sem.evidence_decay != 1.0 and sem.evidence != "pixel":
-    problems.append(f"evidence_decay={sem.evidence_decay} needs "
-                    "evidence='pixel' (eq. 8's image-level sums do not "
-                    "decay)")
-  if not 0.0 < sem.prune_max_alpha <= 1.0:
-    problems.append(f"prune_max_alpha={sem.prune_max_alpha} is not in "
-                    "(0, 1] (1.0: any alpha)")
   if not 0.0 <= sem.tau_p <= 1.0:
     problems.append(f"tau_p={sem.tau_p} is not in [0, 1]")
   if not 0.0 < sem.max_prune_fraction <= 1.0:

@@ -338,9 +338,7 @@ def prune_thresholds(sem: config_lib.SemanticConfig,
           "alpha_min": sem.alpha_min,
           "min_weight": semantic.MIN_EVIDENCE_WEIGHT if sem.localized
                         else 0.0,
-          "rare_needs_evidence": sem.rare_needs_evidence,
-          "max_alpha": sem.prune_max_alpha,
-          "score_needs_views": sem.score_needs_views}
+          "rare_needs_evidence": sem.rare_needs_evidence}
 
 
 def prune(state: state_lib.TrainState, *, cfg: config_lib.Config

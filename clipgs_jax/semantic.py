@@ -124,18 +124,6 @@ def accumulate_pixel(stats: state_lib.SemanticStats, evidence: jax.Array,
       n=stats.n + on * visible.astype(dtype))
 
 
-def decayed(stats: state_lib.SemanticStats,
-            factor: float) -> state_lib.SemanticStats:
-  """acc_j and weight_j times `factor` (n_j, a count of views, unchanged):
-  applied each step before the step's sums, s_j = acc_j / weight_j is a
-  share over recent views with a horizon of about 1 / (1 - factor) steps.
-  factor 1.0 returns `stats` itself (eq. 10's sums over the whole run).
-  """
-  if factor == 1.0:
-    return stats
-  return stats.replace(acc=stats.acc * factor, weight=stats.weight * factor)
-
-
 def agreement(render: jax.Array, photo: jax.Array,
               tolerance: float = AGREEMENT_TOLERANCE) -> jax.Array:
   """float [H, W] in [0, 1]: 1 - mean_c |render - photo| / tolerance,
@@ -179,8 +167,7 @@ def opacity_loss(stats: state_lib.SemanticStats, opacity_logits: jax.Array,
 def prune_masks(stats: state_lib.SemanticStats, opacity_logits: jax.Array,
                 alive: jax.Array, *, tau: float, n_min: float,
                 alpha_min: float, min_weight: float = 0.0,
-                rare_needs_evidence: bool = False, max_alpha: float = 1.0,
-                score_needs_views: bool = False
+                rare_needs_evidence: bool = False
                 ) -> tuple[jax.Array, jax.Array]:
   """Eq. 13, split by condition so each can be counted.
 
@@ -188,23 +175,15 @@ def prune_masks(stats: state_lib.SemanticStats, opacity_logits: jax.Array,
     min_weight: the semantic condition also needs weight_j >= min_weight
       (pixel evidence: MIN_EVIDENCE_WEIGHT; the paper's rule: 0).
     rare_needs_evidence: the visibility condition also needs s_j > 0.
-    max_alpha: the semantic condition also needs alpha_j <= max_alpha
-      (1.0: every row, the paper).
-    score_needs_views: the semantic condition also needs n_j >= n_min: a
-      share over fewer views is left to the visibility condition.
   Returns:
-    semantic: bool [C], alive, s_j > tau, weight_j >= min_weight and
-      alpha_j <= max_alpha.
+    semantic: bool [C], alive, s_j > tau and weight_j >= min_weight.
     visibility: bool [C], alive, not semantic, n_j < n_min and
       alpha_j < alpha_min (and s_j > 0 under rare_needs_evidence). Prune
       `semantic | visibility`.
   """
   s = normalized_scores(stats)
+  semantic = alive & (s > tau) & (stats.weight >= min_weight)
   alpha = jax.nn.sigmoid(opacity_logits)
-  semantic = (alive & (s > tau) & (stats.weight >= min_weight)
-              & (alpha <= max_alpha))
-  if score_needs_views:
-    semantic &= stats.n >= n_min
   visibility = alive & ~semantic & (stats.n < n_min) & (alpha < alpha_min)
   if rare_needs_evidence:
     visibility &= s > 0

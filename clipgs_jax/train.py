@@ -22,7 +22,6 @@ from clipgs_jax import loop
 from clipgs_jax import metrics as metrics_lib
 from clipgs_jax import optim
 from clipgs_jax import residual as residual_lib
-from clipgs_jax import semantic as semantic_lib
 from clipgs_jax import sh
 from clipgs_jax import sharding
 from clipgs_jax import state as state_lib
@@ -140,8 +139,7 @@ def train_step(state: state_lib.TrainState, batch: Batch, scorer=None, *,
     increment, extra = view_lib.semantic_increment(
         vp, scorer, view=view, step=step, cam=cam, bg=bg, target=target,
         cfg=cfg)
-    semantic_stats = jax.tree.map(jnp.add, semantic_lib.decayed(
-        state.semantic, cfg.semantic.evidence_decay), increment)
+    semantic_stats = jax.tree.map(jnp.add, state.semantic, increment)
     metrics.update(extra, view=view,
                    semantic_loss=vp.terms["semantic_loss"])
   if vp.rmap is not None:

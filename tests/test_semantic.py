@@ -93,24 +93,6 @@ class NormalizeLossPruneTest(parameterized.TestCase):
     # acc / n = 0.015 where n > 0; 0 where n = 0 (no NaN from 0 / 0).
     np.testing.assert_allclose(s, [0.0, 0.015, 0.0], rtol=1e-6)
 
-  def test_decayed_forgets_old_evidence(self):
-    # A row marked transient in its first view, then seen in 200 clean
-    # views of the same weight: the whole-run share keeps 1/201, a decay
-    # of 0.99 (horizon ~100 views) leaves 0.99^200 / sum_k 0.99^k.
-    stats = _stats([1.0], [1.0])
-    self.assertIs(semantic.decayed(stats, 1.0), stats)
-    kept = stats
-    for _ in range(200):
-      kept = jax.tree.map(jnp.add, semantic.decayed(kept, 0.99),
-                          _stats([0.0], [1.0]))
-    whole = float(semantic.normalized_scores(
-        _stats([1.0], [201.0]))[0])
-    recent = float(semantic.normalized_scores(kept)[0])
-    expected = 0.99 ** 200 / sum(0.99 ** k for k in range(201))
-    self.assertAlmostEqual(recent, expected, places=6)
-    self.assertLess(recent, whole / 2)
-    self.assertEqual(float(kept.n[0]), 201.0)   # n still counts views
-
   def test_opacity_loss(self):
     stats = _stats([0.02, 0.04, 1.0], [1.0, 2.0, 1.0])
     logits = jnp.array([0.0, 0.0, 0.0])            # alpha = 0.5 each
@@ -135,21 +117,6 @@ class NormalizeLossPruneTest(parameterized.TestCase):
     # seen 20 times; row 3: dead; row 4: few views but opaque.
     np.testing.assert_array_equal(sem, [True, False, False, False, False])
     np.testing.assert_array_equal(vis, [False, True, False, False, False])
-
-  def test_prune_max_alpha_keeps_opaque_rows(self):
-    # Both rows' light fell on transient pixels (s = 0.8); the opaque one
-    # is kept while unmasked views hold its opacity up, and becomes
-    # prunable by eq. 13 in the same state once the opacity loss fades it.
-    stats = _stats([0.8, 0.8], [1.0, 1.0])
-    alpha = jnp.array([0.95, 0.05])
-    logits = jnp.log(alpha / (1 - alpha))
-    alive = jnp.ones(2, bool)
-    sem, _ = semantic.prune_masks(stats, logits, alive, tau=0.5, n_min=0,
-                                  alpha_min=0.0, max_alpha=0.5)
-    np.testing.assert_array_equal(sem, [False, True])
-    sem, _ = semantic.prune_masks(stats, logits, alive, tau=0.5, n_min=0,
-                                  alpha_min=0.0)
-    np.testing.assert_array_equal(sem, [True, True])
 
   @parameterized.named_parameters(("tau_zero", 0.0, [True, True, False]),
                                   ("tau_one", 1.0, [False, False, False]))

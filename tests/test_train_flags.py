@@ -127,8 +127,6 @@ class SemanticCheckTest(parameterized.TestCase):
       ("oracle_saturation", 0.0, "oracle_saturation="),
       ("distractor_prompts", ("a photo of a person", " "), "prompt is empty"),
       ("evidence", "patch", "evidence="), ("tau_p", 1.5, "tau_p="),
-      ("evidence_decay", 0.0, "evidence_decay="),
-      ("prune_max_alpha", 0.0, "prune_max_alpha="),
       ("max_prune_fraction", 0.0, "max_prune_fraction="),
       ("loss_masking", True, "loss_masking needs evidence='pixel'"),
       ("dense_input_size", 0, "dense_input_size="),
