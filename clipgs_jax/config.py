@@ -216,12 +216,6 @@ class SemanticConfig:
   #   "Transient masks without an oracle")
   residual_uniform_until: int = 10_000  # paper steps, scaled like
   #   residual_start (1,250 of 2,500)
-  evidence_keeps_gate: bool = False  # features: the map that feeds the
-  #   evidence (opacity loss, eq. 13 prune) keeps the uniformity gate all
-  #   run; only the loss mask is released at residual_uniform_until. A
-  #   pixel wrongly kept out of the loss is trained later, a row wrongly
-  #   pruned is gone: bonsai's window (BUILD_NOTES.md, "Which rows eq. 13
-  #   takes")
 
   @property
   def enabled(self) -> bool:

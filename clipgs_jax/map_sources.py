@@ -151,23 +151,17 @@ def held_back(rmap: ResidualMap, source: ResidualSource, view: jax.Array,
   transient, every pixel in the loss) before sem.residual_start; with
   feature regions and sem.residual_uniformity, before
   sem.residual_uniform_until only the regions whose residual is uniform
-  (features.uniform) stay transient; under sem.evidence_keeps_gate the
-  transient map (the evidence) keeps that gate all run. The evaluation
-  maps (view_map, mask quality) are the test's own map, which the step
-  uses from then on."""
+  (features.uniform) stay transient. The evaluation maps (view_map, mask
+  quality) are the test's own map, which the step uses from then on."""
   uniform = sem.residual_uniformity > 0 and source.labels is not None
   if not sem.residual_start and not uniform:
     return rmap
   on = (step >= sem.residual_start).astype(jnp.float32)
-  evidence_on = on
   if uniform:
     even = features.uniform(rmap.residual, source.labels[view],
                             source.num_regions, sem.residual_uniformity)
-    evidence_on = on * even
     on = on * jnp.where(step < sem.residual_uniform_until, even, 1.0)
-    if not sem.evidence_keeps_gate:
-      evidence_on = on
-  return rmap.replace(transient=rmap.transient * evidence_on,
+  return rmap.replace(transient=rmap.transient * on,
                       loss_weight=1.0 - on * (1.0 - rmap.loss_weight))
 
 

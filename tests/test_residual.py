@@ -233,14 +233,6 @@ class SourceTest(absltest.TestCase):
     per_pixel = map_sources.held_back(rmap, map_sources.ResidualSource(),
                                       jnp.int32(0), jnp.int32(99), sem)
     self.assertIs(per_pixel, rmap)
-    # Keeping the gate for the evidence: after the gate ends the loss
-    # mask is released, the evidence still leaves the striped region out.
-    kept = map_sources.held_back(
-        rmap, source, jnp.int32(0), jnp.int32(100),
-        self._sem(residual_uniformity=0.2, residual_uniform_until=100,
-                  evidence_keeps_gate=True))
-    np.testing.assert_array_equal(kept.transient, early.transient)
-    np.testing.assert_array_equal(kept.loss_weight, rmap.loss_weight)
 
   def test_alpha_gate_keeps_transients_only_on_rendered_surface(self):
     photo = jnp.zeros((16, 16, 3))
