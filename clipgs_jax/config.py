@@ -167,6 +167,10 @@ class SemanticConfig:
   #   reaches them the small, steady loss gradient moves its logit at
   #   several times the learning rate, under min_opacity (BUILD_NOTES.md,
   #   "Localized evidence")
+  prune_harm: float = 0.0      # a row of eq. 13's semantic clause is kept
+  #   when this share of its blending weight over the training views falls
+  #   on pixels the render fits only with the clause's rows (two renders of
+  #   every training view a prune event; render_without.py). 0: off
   max_prune_fraction: float = 0.5  # a prune event that would remove more
   #   of the alive Gaussians than this removes none (1.0: the paper, no guard)
   dense_input_size: int = 448  # clip + pixel: CLIP input side, a multiple
@@ -303,6 +307,7 @@ _HOST_TRAIN_FIELDS = ("seed", "log_every", "eval_every", "checkpoint_every")
 # (guidance.make_scorer), which the step gets as an argument.
 SEMANTIC_FIELDS_NOT_IN_STEP = (
     "prune", "tau", "tau_p", "n_min", "alpha_min", "rare_needs_evidence",
+    "prune_harm",
     "prune_start", "prune_every", "max_prune_fraction", "static_prompts",
     "clip_variant", "dense_input_size", "oracle_saturation")
 

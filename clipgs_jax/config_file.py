@@ -140,6 +140,8 @@ def _semantic_problems(sem: config_lib.SemanticConfig) -> list[str]:
     problems.append("scorer='clip' with evidence='pixel' needs static "
                     "prompts: p(distractor) is a softmax over D and S, which "
                     "is identically 1 without S")
+  if not 0.0 <= sem.prune_harm <= 1.0:
+    problems.append(f"prune_harm={sem.prune_harm} is not in [0, 1]")
   if not 0.0 <= sem.tau_p <= 1.0:
     problems.append(f"tau_p={sem.tau_p} is not in [0, 1]")
   if not 0.0 < sem.max_prune_fraction <= 1.0:

@@ -341,7 +341,8 @@ def prune_thresholds(sem: config_lib.SemanticConfig,
           "rare_needs_evidence": sem.rare_needs_evidence}
 
 
-def prune(state: state_lib.TrainState, *, cfg: config_lib.Config
+def prune(state: state_lib.TrainState, spared: jax.Array | None = None, *,
+          cfg: config_lib.Config
           ) -> tuple[state_lib.TrainState, dict[str, jax.Array]]:
   """Eq. 13: removes alive rows with s_j > tau, or n_j < n_min and
   alpha_j < alpha_min; their parameters, moments and statistics are cleared.
@@ -352,7 +353,8 @@ def prune(state: state_lib.TrainState, *, cfg: config_lib.Config
   With pixel evidence the threshold is tau_p on the probability s_j, for
   rows with at least semantic.MIN_EVIDENCE_WEIGHT of evidence. An event
   that would remove more than max_prune_fraction of the alive rows removes
-  none (semantic.guard_prune).
+  none (semantic.guard_prune). `spared` (bool [C] or None) rows stay out of
+  the semantic clause (render_without.py).
 
   Returns:
     (state, info) with int32 num_alive_before, num_pruned_semantic,
@@ -366,6 +368,8 @@ def prune(state: state_lib.TrainState, *, cfg: config_lib.Config
   by_score, by_visibility = semantic.prune_masks(
       state.semantic, state.params.opacity_logits, state.alive,
       **prune_thresholds(sem))
+  if spared is not None:
+    by_score &= ~spared
   wanted = jnp.sum(by_score | by_visibility, dtype=jnp.int32)
   by_score, by_visibility, guarded = semantic.guard_prune(
       by_score, by_visibility, state.alive, sem.max_prune_fraction)
@@ -392,7 +396,7 @@ def prune(state: state_lib.TrainState, *, cfg: config_lib.Config
 
 @config_lib.cache_by_compiled_part()
 def make_prune(cfg: config_lib.Config):
-  """Jitted prune(state) -> (state, info); the state is donated."""
+  """Jitted prune(state, spared) -> (state, info); the state is donated."""
   return jax.jit(functools.partial(prune, cfg=cfg), donate_argnums=(0,))
 
 

@@ -25,6 +25,7 @@ from clipgs_jax import config as config_lib
 from clipgs_jax import densify as densify_lib
 from clipgs_jax import evaluation
 from clipgs_jax import guidance
+from clipgs_jax import render_without
 from clipgs_jax import semantic
 from clipgs_jax import sharding
 from clipgs_jax import sh
@@ -288,8 +289,9 @@ def semantic_prune(state: state_lib.TrainState, flog: FitLog, step: int,
     ctx.summary.histogram(step, "semantic/s_j",
                           scores[np.asarray(state.alive)],
                           bins=guidance.histogram_edges(cfg.semantic))
-  state, info = guidance.make_prune(cfg)(state)
-  info = jax.device_get(info)
+  spared, num_spared = _spared_rows(state, ctx)
+  state, info = guidance.make_prune(cfg)(state, spared)
+  info = jax.device_get(info) | {"num_spared": num_spared}
   rows = np.nonzero(info.pop("pruned_semantic"))[0]
   pruned = jax.device_get(jax.tree.map(lambda x: x[rows], state.params))
   event = {"step": step} | {k: np.asarray(v).tolist()
@@ -306,13 +308,35 @@ def semantic_prune(state: state_lib.TrainState, flog: FitLog, step: int,
         event["num_refused"], event["num_alive_before"],
         cfg.semantic.max_prune_fraction)
   else:
-    _log.info("step %d: semantic prune removed %d (s_j > tau) + %d "
-              "(rarely seen, faint) of %d", step,
-              event["num_pruned_semantic"],
+    _log.info("step %d: semantic prune removed %d (s_j > tau; %d spared) "
+              "+ %d (rarely seen, faint) of %d", step,
+              event["num_pruned_semantic"], num_spared,
               event["num_pruned_visibility"], event["num_alive_before"])
   return state, dataclasses.replace(
       flog, pruned=flog.pruned + [pruned],
       prune_events=flog.prune_events + [event])
+
+
+def _spared_rows(state: state_lib.TrainState, ctx: Context
+                 ) -> tuple[jax.Array | None, int]:
+  """The semantic clause's rows that semantic.prune_harm keeps (None when
+  the test is off), and how many (render_without.py)."""
+  sem = ctx.cfg.semantic
+  if sem.prune_harm <= 0:
+    return None, 0
+  candidates, _ = semantic.prune_masks(
+      state.semantic, state.params.opacity_logits, state.alive,
+      **guidance.prune_thresholds(sem))
+  candidates = np.asarray(candidates)
+  if not candidates.any():
+    return None, 0
+  threshold = (float(state.maps.threshold) if state.maps is not None
+               else sem.residual_min_threshold)
+  share, _ = render_without.harmed_share(
+      state.params, state.alive, candidates, ctx.scene.train, threshold,
+      _degree(state.step, ctx), ctx.cfg)
+  spared = candidates & (share >= sem.prune_harm)
+  return jnp.asarray(spared), int(spared.sum())
 
 
 def grow_if_needed(state: state_lib.TrainState, cfg: config_lib.Config

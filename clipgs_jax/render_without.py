@@ -1,0 +1,80 @@
+"""What eq. 13's semantic clause would cost the views that see its rows.
+
+A row can have most of its blending weight on pixels a residual map marked
+(s_j > tau_p) and still be static scene that the other views need: a
+window whose bright edge the map marks in the few views that see it. Ghosts
+of transients explain nothing the photos agree on. The test renders each
+training view with every alive row and again without the candidates, and
+calls a pixel harmed where the first render fits the photo (residual at or
+under the map's threshold) and the second does not. A candidate whose
+share of blending weight, over the training views, on harmed pixels is at
+least `semantic.prune_harm` is spared.
+"""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from clipgs_jax import camera as camera_lib
+from clipgs_jax import config as config_lib
+from clipgs_jax import project as project_lib
+from clipgs_jax import rasterize
+from clipgs_jax import residual
+
+
+@functools.lru_cache(maxsize=None)
+def _view_fn(render_cfg: config_lib.RenderConfig):
+  def fn(params, alive, candidates, cam, photo, valid_size, background,
+         degree, threshold):
+    def draw(rows, evidence_map=None):
+      proj = project_lib.project(params, rows, cam, near=render_cfg.near,
+                                 sh_degree=degree)
+      return proj, rasterize.rasterize(proj, cam, background, render_cfg,
+                                       evidence_map=evidence_map,
+                                       valid_size=valid_size)
+    proj, kept = draw(alive)
+    _, without = draw(alive & ~candidates)
+    harmed = ((residual.residual(kept.image, photo) <= threshold)
+              & (residual.residual(without.image, photo) > threshold))
+    out = rasterize.rasterize(proj, cam, background, render_cfg,
+                              evidence_map=harmed.astype(photo.dtype),
+                              valid_size=valid_size)
+    return (jnp.where(candidates, out.contribution, 0.0),
+            jnp.where(candidates, out.evidence, 0.0), jnp.sum(harmed))
+  return jax.jit(fn)
+
+
+def harmed_share(params, alive, candidates, views, threshold, degree,
+                 cfg: config_lib.Config) -> tuple[np.ndarray, int]:
+  """Per row, the share of its blending weight over `views` that falls on
+  pixels the render fits only with the candidates (0 off `candidates`).
+
+  Args:
+    params, alive: the model now.
+    candidates: bool [C], the rows the test would remove together.
+    views: data.scene.Views, the training views.
+    threshold: float, the residual map's inlier threshold.
+    degree: int32 [], the SH degree the steps use now.
+    cfg: the run's config (render settings and background).
+  Returns:
+    (float64 [C] share, int number of harmed pixels over the views).
+  """
+  fn = _view_fn(cfg.render)
+  background = jnp.asarray(cfg.train.background, jnp.float32)
+  cams = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), views.cameras)
+  candidates = jnp.asarray(candidates)
+  weight = np.zeros(params.capacity)
+  harmed = np.zeros(params.capacity)
+  pixels = 0
+  for i in range(len(views)):
+    size = None if views.sizes is None else jnp.asarray(views.sizes[i])
+    w, h, count = fn(params, alive, candidates, camera_lib.camera_at(cams, i),
+                     jnp.asarray(views.images[i], jnp.float32), size,
+                     background, degree, jnp.float32(threshold))
+    weight += np.asarray(w, np.float64)
+    harmed += np.asarray(h, np.float64)
+    pixels += int(count)
+  share = np.where(weight > 0, harmed / np.maximum(weight, 1e-12), 0.0)
+  return share, pixels
