@@ -332,7 +332,7 @@ def _spared_rows(state: state_lib.TrainState, ctx: Context
     return None, 0
   threshold = (float(state.maps.threshold) if state.maps is not None
                else sem.residual_min_threshold)
-  share, _ = render_without.harmed_share(
+  share, _, _ = render_without.harmed_share(
       state.params, state.alive, candidates, ctx.scene.train, threshold,
       _degree(state.step, ctx), ctx.cfg)
   spared = candidates & (share >= sem.prune_harm)

@@ -46,6 +46,19 @@ def _view_fn(render_cfg: config_lib.RenderConfig):
   return jax.jit(fn)
 
 
+@functools.lru_cache(maxsize=None)
+def _on_screen_fn(near: float):
+  def fn(params, candidates, cam, valid_size, degree):
+    proj = project_lib.project(params, candidates, cam, near=near,
+                               sh_degree=degree)
+    lo = proj.means2d - proj.extents
+    hi = proj.means2d + proj.extents
+    inside = ((hi[:, 0] >= 0) & (hi[:, 1] >= 0)
+              & (lo[:, 0] < valid_size[0]) & (lo[:, 1] < valid_size[1]))
+    return jnp.any(proj.valid & inside)
+  return jax.jit(fn)
+
+
 def harmed_share(params, alive, candidates, views, threshold, degree,
                  cfg: config_lib.Config) -> tuple[np.ndarray, int]:
   """Per row, the share of its blending weight over `views` that falls on
@@ -59,22 +72,30 @@ def harmed_share(params, alive, candidates, views, threshold, degree,
     degree: int32 [], the SH degree the steps use now.
     cfg: the run's config (render settings and background).
   Returns:
-    (float64 [C] share, int number of harmed pixels over the views).
+    (float64 [C] share, int number of harmed pixels over the views, int
+    number of views rendered: those where some candidate is on screen).
   """
   fn = _view_fn(cfg.render)
+  on_screen = _on_screen_fn(cfg.render.near)
   background = jnp.asarray(cfg.train.background, jnp.float32)
   cams = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), views.cameras)
   candidates = jnp.asarray(candidates)
   weight = np.zeros(params.capacity)
   harmed = np.zeros(params.capacity)
-  pixels = 0
+  pixels = tested = 0
   for i in range(len(views)):
+    cam = camera_lib.camera_at(cams, i)
     size = None if views.sizes is None else jnp.asarray(views.sizes[i])
-    w, h, count = fn(params, alive, candidates, camera_lib.camera_at(cams, i),
+    canvas = jnp.asarray([cam.width, cam.height], jnp.float32)
+    if not on_screen(params, candidates, cam,
+                     canvas if size is None else size, degree):
+      continue
+    tested += 1
+    w, h, count = fn(params, alive, candidates, cam,
                      jnp.asarray(views.images[i], jnp.float32), size,
                      background, degree, jnp.float32(threshold))
     weight += np.asarray(w, np.float64)
     harmed += np.asarray(h, np.float64)
     pixels += int(count)
   share = np.where(weight > 0, harmed / np.maximum(weight, 1e-12), 0.0)
-  return share, pixels
+  return share, pixels, tested
