@@ -169,8 +169,9 @@ class SemanticConfig:
   #   "Localized evidence")
   prune_harm: float = 0.0      # a row of eq. 13's semantic clause is kept
   #   when this share of its blending weight over the training views falls
-  #   on pixels the render fits only with the clause's rows (two renders of
-  #   every training view a prune event; render_without.py). 0: off
+  #   on pixels that removing the clause's rows makes worse (two renders of
+  #   the training views that see them, each prune event;
+  #   render_without.py). 0: off
   max_prune_fraction: float = 0.5  # a prune event that would remove more
   #   of the alive Gaussians than this removes none (1.0: the paper, no guard)
   dense_input_size: int = 448  # clip + pixel: CLIP input side, a multiple

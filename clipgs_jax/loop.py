@@ -330,11 +330,9 @@ def _spared_rows(state: state_lib.TrainState, ctx: Context
   candidates = np.asarray(candidates)
   if not candidates.any():
     return None, 0
-  threshold = (float(state.maps.threshold) if state.maps is not None
-               else sem.residual_min_threshold)
   share, _, _ = render_without.harmed_share(
-      state.params, state.alive, candidates, ctx.scene.train, threshold,
-      _degree(state.step, ctx), ctx.cfg)
+      state.params, state.alive, candidates, ctx.scene.train,
+      render_without.HARM_TOLERANCE, _degree(state.step, ctx), ctx.cfg)
   spared = candidates & (share >= sem.prune_harm)
   return jnp.asarray(spared), int(spared.sum())
 

@@ -45,7 +45,8 @@ class HarmedShareTest(absltest.TestCase):
   def _share(self, photo, candidates):
     return render_without.harmed_share(
         self.params, jnp.ones(3, bool), np.asarray(candidates),
-        _views(self.cam, photo), 0.15, jnp.int32(0), CFG)
+        _views(self.cam, photo), render_without.HARM_TOLERANCE,
+        jnp.int32(0), CFG)
 
   def test_a_row_the_photo_shows_is_needed(self):
     share, pixels, _ = self._share(self._photo([True, True, True]),
@@ -53,6 +54,16 @@ class HarmedShareTest(absltest.TestCase):
     self.assertGreater(pixels, 10)
     self.assertGreater(share[0], 0.5)
     np.testing.assert_array_equal(share[1:], 0.0)   # not candidates
+
+  def test_a_row_not_yet_fit_is_needed_too(self):
+    # The photo's blob is darker than the render's (a residual above any
+    # map threshold there), but the background without the row is worse.
+    photo = self._photo([True, True, True])
+    self.params = synthetic.with_rows(
+        self.params, sh_dc=[[1.2, 1.2, 1.2], [2.0, -1.0, -1.0],
+                            [-1.0, 2.0, -1.0]])
+    share, _, _ = self._share(photo, [True, False, False])
+    self.assertGreater(share[0], 0.5)
 
   def test_a_ghost_the_photo_lacks_is_not(self):
     # The photo has the first blob's place empty: the render misses it
