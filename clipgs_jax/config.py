@@ -171,7 +171,8 @@ class SemanticConfig:
   #   when this share of its blending weight over the training views falls
   #   on pixels that removing the clause's rows makes worse (two renders of
   #   the training views that see them, each prune event;
-  #   render_without.py). 0: off
+  #   render_without.py). 0: off; it spares part of bonsai's window, not
+  #   all (BUILD_NOTES.md, "Which rows eq. 13 takes")
   max_prune_fraction: float = 0.5  # a prune event that would remove more
   #   of the alive Gaussians than this removes none (1.0: the paper, no guard)
   dense_input_size: int = 448  # clip + pixel: CLIP input side, a multiple
