@@ -1,15 +1,15 @@
 """What eq. 13's semantic clause would cost the views that see its rows.
 
 A row can have most of its blending weight on pixels a residual map marked
-(s_j > tau_p) and still be static scene that the other views need: a
-window whose bright edge the map marks in the few views that see it, not
-yet fit where it is overexposed. Ghosts of transients draw what most views
-do not show. The test renders each training view with every alive row and
-again without the candidates, and calls a pixel harmed where the residual
-|render - photo| (mean over channels) without them is larger by more than
-HARM_TOLERANCE, marked or not. A candidate with at least
-`semantic.prune_harm` of its blending weight over the training views on
-harmed pixels is spared.
+(s_j > tau_p) and still be static scene that the other views need: a window
+whose bright edge the map marks in the few views that see it, not yet fit
+where it is overexposed. Ghosts of transients draw what most views do not
+show. The test renders each training view where some candidate is on screen
+with every alive row and again without the candidates, and calls a pixel
+harmed where the residual |render - photo| (mean over channels) without them
+is larger by more than HARM_TOLERANCE, marked or not. A candidate with at
+least `semantic.prune_harm` of its blending weight over the training views
+on harmed pixels is spared.
 """
 
 import functools
@@ -34,11 +34,10 @@ HARM_TOLERANCE = 0.05
 def _view_fn(render_cfg: config_lib.RenderConfig):
   def fn(params, alive, candidates, cam, photo, valid_size, background,
          degree, threshold):
-    def draw(rows, evidence_map=None):
+    def draw(rows):
       proj = project_lib.project(params, rows, cam, near=render_cfg.near,
                                  sh_degree=degree)
       return proj, rasterize.rasterize(proj, cam, background, render_cfg,
-                                       evidence_map=evidence_map,
                                        valid_size=valid_size)
     proj, kept = draw(alive)
     _, without = draw(alive & ~candidates)
