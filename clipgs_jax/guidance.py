@@ -341,6 +341,16 @@ def prune_thresholds(sem: config_lib.SemanticConfig,
           "rare_needs_evidence": sem.rare_needs_evidence}
 
 
+def prune_candidates(state: state_lib.TrainState,
+                     sem: config_lib.SemanticConfig
+                     ) -> tuple[jax.Array, jax.Array]:
+  """Eq. 13's two clauses on `state` under `sem`'s thresholds, before the
+  guard: (semantic, visibility), as semantic.prune_masks."""
+  return semantic.prune_masks(
+      state.semantic, state.params.opacity_logits, state.alive,
+      **prune_thresholds(sem))
+
+
 def prune(state: state_lib.TrainState, spared: jax.Array | None = None, *,
           cfg: config_lib.Config
           ) -> tuple[state_lib.TrainState, dict[str, jax.Array]]:
@@ -365,9 +375,7 @@ def prune(state: state_lib.TrainState, spared: jax.Array | None = None, *,
     semantic rule removed (for the mask IoU of the pruned Gaussians).
   """
   sem = cfg.semantic
-  by_score, by_visibility = semantic.prune_masks(
-      state.semantic, state.params.opacity_logits, state.alive,
-      **prune_thresholds(sem))
+  by_score, by_visibility = prune_candidates(state, sem)
   if spared is not None:
     by_score &= ~spared
   wanted = jnp.sum(by_score | by_visibility, dtype=jnp.int32)

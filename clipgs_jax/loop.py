@@ -324,10 +324,7 @@ def _spared_rows(state: state_lib.TrainState, ctx: Context
   sem = ctx.cfg.semantic
   if sem.prune_harm <= 0:
     return None, 0
-  candidates, _ = semantic.prune_masks(
-      state.semantic, state.params.opacity_logits, state.alive,
-      **guidance.prune_thresholds(sem))
-  candidates = np.asarray(candidates)
+  candidates = np.asarray(guidance.prune_candidates(state, sem)[0])
   if not candidates.any():
     return None, 0
   share, _, _ = render_without.harmed_share(

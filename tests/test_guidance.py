@@ -231,6 +231,19 @@ class PruneTest(parameterized.TestCase):
     self.assertEqual(hist[0], 1)
     self.assertEqual(hist[20], 1)
 
+  def test_spared_rows_stay_out_of_the_semantic_clause(self):
+    cfg = _cfg(tau=0.015, n_min=10.0, alpha_min=0.1, beta=0.1)
+    # Rows 0 and 1 are over tau; row 2 is rarely seen and faint.
+    state = _state_with_stats([0.205, 0.3, 0.0], [10.0, 10.0, 0.0],
+                              [0.5, 0.5, 0.05], [True, True, True])
+    semantic_rows, _ = guidance.prune_candidates(state, cfg.semantic)
+    np.testing.assert_array_equal(semantic_rows, [True, True, False])
+    state, info = guidance.prune(state, jnp.asarray([True, False, False]),
+                                 cfg=cfg)
+    np.testing.assert_array_equal(state.alive, [True, False, False])
+    self.assertEqual(int(info["num_pruned_semantic"]), 1)
+    self.assertEqual(int(info["num_pruned_visibility"]), 1)
+
   @parameterized.parameters((0.0, 2), (1.0, 0))
   def test_tau_edges(self, tau, expected):
     cfg = _cfg(tau=tau, n_min=0.0)
