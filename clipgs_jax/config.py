@@ -173,11 +173,6 @@ class SemanticConfig:
   #   the training views that see them, each prune event;
   #   render_without.py). 0: off; it spares part of bonsai's window, not
   #   all (BUILD_NOTES.md, "Which rows eq. 13 takes")
-  prune_probation: bool = False  # eq. 13's semantic clause removes a row
-  #   only at alpha_j <= alpha_min; a brighter one has its opacity set to
-  #   alpha_min and its statistics and moments cleared, so the photometric
-  #   loss decides: a row the views need brightens, one they do not stays
-  #   faint and the visibility clause removes it at a later event
   max_prune_fraction: float = 0.5  # a prune event that would remove more
   #   of the alive Gaussians than this removes none (1.0: the paper, no guard)
   dense_input_size: int = 448  # clip + pixel: CLIP input side, a multiple
@@ -314,7 +309,7 @@ _HOST_TRAIN_FIELDS = ("seed", "log_every", "eval_every", "checkpoint_every")
 # (guidance.make_scorer), which the step gets as an argument.
 SEMANTIC_FIELDS_NOT_IN_STEP = (
     "prune", "tau", "tau_p", "n_min", "alpha_min", "rare_needs_evidence",
-    "prune_harm", "prune_probation",
+    "prune_harm",
     "prune_start", "prune_every", "max_prune_fraction", "static_prompts",
     "clip_variant", "dense_input_size", "oracle_saturation")
 

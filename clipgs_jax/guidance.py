@@ -396,18 +396,9 @@ def prune(state: state_lib.TrainState, spared: jax.Array | None = None, *,
       "histogram": histogram,
       "pruned_semantic": by_score,
   }
-  removed = by_score | by_visibility
-  if sem.prune_probation:
-    alpha = jax.nn.sigmoid(state.params.opacity_logits)
-    on_probation = by_score & (alpha > sem.alpha_min)
-    removed &= ~on_probation
-    info["num_probation"] = jnp.sum(on_probation, dtype=jnp.int32)
-    faint = state.params.replace(opacity_logits=jnp.full_like(
-        state.params.opacity_logits, jax.scipy.special.logit(sem.alpha_min)))
-    state = state_lib.write_rows(
-        state, jnp.where(on_probation, rows, capacity), faint, alive=True)
   state = state_lib.write_rows(
-      state, jnp.where(removed, rows, capacity), None, alive=False)
+      state, jnp.where(by_score | by_visibility, rows, capacity), None,
+      alive=False)
   return state, info
 
 

@@ -244,34 +244,6 @@ class PruneTest(parameterized.TestCase):
     self.assertEqual(int(info["num_pruned_semantic"]), 1)
     self.assertEqual(int(info["num_pruned_visibility"]), 1)
 
-  def test_probation_fades_bright_rows_and_removes_faint_ones(self):
-    cfg = _cfg(tau=0.015, n_min=10.0, alpha_min=0.1, beta=0.1,
-               prune_probation=True)
-    # Rows 0 and 1 are over tau, bright and faint; row 2 under it.
-    state = _state_with_stats([0.205, 0.3, 0.0525], [10.0, 10.0, 5.0],
-                              [0.6, 0.05, 0.5], [True, True, True])
-    before = jax.device_get(state.params)
-    state, info = guidance.prune(state, cfg=cfg)
-    # The bright row stays alive at alpha_min, its statistics and moments
-    # cleared; the faint one is removed, as without probation.
-    np.testing.assert_array_equal(state.alive, [True, False, True])
-    self.assertEqual(int(info["num_probation"]), 1)
-    np.testing.assert_allclose(jax.nn.sigmoid(state.params.opacity_logits),
-                               [0.1, 0.05, 0.5], rtol=1e-5)
-    np.testing.assert_array_equal(state.params.means, before.means)
-    np.testing.assert_allclose(state.semantic.acc, [0, 0, 0.0525])
-    np.testing.assert_allclose(state.semantic.n, [0, 0, 5])
-    for leaf in _row_leaves(state):
-      self.assertTrue(np.all(leaf[0] == 0))
-    # At the next event it is faint and unseen: the visibility clause
-    # removes it unless the loss brightened it.
-    state, info = guidance.prune(state.replace(
-        params=state.params.replace(opacity_logits=state.params
-                                    .opacity_logits.at[0].add(-0.01))),
-                                 cfg=cfg)
-    np.testing.assert_array_equal(state.alive, [False, False, True])
-    self.assertEqual(int(info["num_pruned_visibility"]), 1)
-
   @parameterized.parameters((0.0, 2), (1.0, 0))
   def test_tau_edges(self, tau, expected):
     cfg = _cfg(tau=tau, n_min=0.0)
