@@ -209,6 +209,12 @@ class SemanticConfig:
   #   surface other views reconstruct; where the model has none, a high
   #   residual is static scene not yet fit, and masking it keeps it unfit
   #   (BUILD_NOTES.md, "Transient masks without an oracle")
+  residual_min_share: float = 0.03  # a view whose map, after the gates,
+  #   marks less than this share of its pixels is taken as clean: no
+  #   transient pixel, every pixel in the loss (0: off). A fit error
+  #   marks a few regions of a view (bonsai's clean twin: at most 2 %),
+  #   a transient the benchmarks paste 5-42 % of one; a smaller one goes
+  #   unmasked (BUILD_NOTES.md, "The share floor")
   features: str = ""           # residual map: "" per pixel, or "alex" /
   #   "vgg": each photo's ImageNet-feature regions (features.py) take the
   #   majority verdict of the residual test inside them

@@ -203,6 +203,9 @@ def _residual_problems(sem: config_lib.SemanticConfig) -> list[str]:
   if sem.features and not sem.uses_residual:
     problems.append("features votes the residual test over regions: it "
                     "needs scorer='residual' or residual=True")
+  if not 0.0 <= sem.residual_min_share < 1.0:
+    problems.append(f"residual_min_share={sem.residual_min_share} is not "
+                    "in [0, 1)")
   if not 0.0 < sem.residual_vote <= 1.0:
     problems.append(f"residual_vote={sem.residual_vote} is not in (0, 1]")
   if not sem.residual_uniformity >= 0:

@@ -28,7 +28,8 @@ SEMANTIC_GATE = 0.5
 
 # The residual map's steps in the order they apply (_test's, then _gates');
 # a map skips the steps its source and config do not have.
-STAGES = ("threshold", "rule", "vote", "semantic", "alpha", "valid")
+STAGES = ("threshold", "rule", "vote", "semantic", "alpha", "valid",
+          "share")
 
 
 @flax.struct.dataclass
@@ -106,6 +107,16 @@ def _gates(source: ResidualSource, view: jax.Array,
   return gates
 
 
+def _marks_enough(transient: jax.Array, valid: jax.Array | None,
+                  sem: config_lib.SemanticConfig) -> jax.Array:
+  """float32 [], 1 where `transient` marks at least
+  sem.residual_min_share of the photo's pixels, else 0 (the view is taken
+  as clean)."""
+  area = jnp.size(transient) if valid is None else jnp.sum(valid)
+  return (jnp.sum(transient) >= sem.residual_min_share * area).astype(
+      jnp.float32)
+
+
 def residual_map(source: ResidualSource, stats: residual.ResidualState,
                  view: jax.Array, render: jax.Array, photo: jax.Array,
                  step: jax.Array, key: jax.Array,
@@ -130,6 +141,8 @@ def residual_map(source: ResidualSource, stats: residual.ResidualState,
       sem.residual_min_alpha > 0: a pixel is transient only where alpha
       exceeds it, or, with feature regions, only in a region where most
       pixels' alpha does (the gate follows the region, as the vote does).
+  A map that, after these gates, marks less than sem.residual_min_share of
+  the photo's pixels is empty, and the view's loss keeps every pixel.
   Raises:
     ValueError: sem.residual_min_alpha > 0 and no alpha.
   """
@@ -140,6 +153,9 @@ def residual_map(source: ResidualSource, stats: residual.ResidualState,
   dropped = 1.0 - kept
   for gate in _gates(source, view, sem, valid, alpha).values():
     transient, dropped = transient * gate, dropped * gate
+  if sem.residual_min_share > 0:
+    big = _marks_enough(transient, valid, sem)
+    transient, dropped = transient * big, dropped * big
   return ResidualMap(transient=transient, loss_weight=1.0 - dropped,
                      residual=res)
 
@@ -178,6 +194,8 @@ def residual_stages(source: ResidualSource, stats: residual.ResidualState,
   transient = list(stages.values())[-1]
   for name, gate in _gates(source, view, sem, None, alpha).items():
     transient = stages[name] = transient * gate
+  if sem.residual_min_share > 0:
+    stages["share"] = transient * _marks_enough(transient, None, sem)
   return stages
 
 

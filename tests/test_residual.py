@@ -183,6 +183,37 @@ class SourceTest(absltest.TestCase):
     np.testing.assert_array_equal(gated.transient[:, :8],
                                   plain.transient[:, :8])
 
+  def test_a_map_under_the_share_floor_is_empty(self):
+    photo = jnp.zeros((20, 20, 3))
+    stats = residual.ResidualState.initial().replace(
+        threshold=jnp.float32(0.5))
+    sem = self._sem(residual_min_share=0.05)   # 20 of 400 pixels
+    for size, kept in ((4, False), (6, True)):
+      render = photo.at[:size, :size].set(1.0)
+      rmap = map_sources.residual_map(
+          map_sources.ResidualSource(), stats, jnp.int32(0), render, photo,
+          jnp.int32(5), jax.random.key(0), self._sem())
+      self.assertEqual(float(jnp.sum(rmap.transient)) >= 20, kept)
+      floored = map_sources.residual_map(
+          map_sources.ResidualSource(), stats, jnp.int32(0), render, photo,
+          jnp.int32(5), jax.random.key(0), sem)
+      np.testing.assert_array_equal(floored.transient,
+                                    rmap.transient if kept else 0.0)
+      np.testing.assert_array_equal(floored.loss_weight,
+                                    rmap.loss_weight if kept else 1.0)
+      stages = map_sources.residual_stages(
+          map_sources.ResidualSource(), stats, jnp.int32(0), render,
+          jnp.ones((20, 20)), photo, sem)
+      np.testing.assert_array_equal(stages["share"], floored.transient)
+    # On a larger canvas the share counts the photo's pixels only: the
+    # 4x4 miss is under 5 % of the canvas, over 5 % of a 10x10 photo.
+    valid = jnp.zeros((20, 20)).at[:10, :10].set(1.0)
+    floored = map_sources.residual_map(
+        map_sources.ResidualSource(), stats, jnp.int32(0),
+        photo.at[:4, :4].set(1.0), photo, jnp.int32(5), jax.random.key(0),
+        sem, valid=valid)
+    self.assertGreater(float(jnp.sum(floored.transient)), 5.0)
+
   def test_start_leaves_the_map_empty_before_it(self):
     photo = jnp.zeros((16, 16, 3))
     render = photo.at[4:12, 4:12].set(1.0)       # an 8x8 miss
@@ -313,7 +344,7 @@ class SourceTest(absltest.TestCase):
     stages = map_sources.residual_stages(source, stats, jnp.int32(0),
                                          render, alpha, photo, sem)
     self.assertEqual(list(stages), ["threshold", "rule", "vote",
-                                    "semantic", "alpha"])
+                                    "semantic", "alpha", "share"])
     self.assertEqual(tuple(k for k in map_sources.STAGES if k in stages),
                      tuple(stages))
     # The low residual in the middle fails the threshold; the 3x3 rule
@@ -323,7 +354,7 @@ class SourceTest(absltest.TestCase):
     transient = map_sources.residual_map(
         source, stats, jnp.int32(0), render, photo, jnp.int32(5),
         jax.random.key(0), sem, alpha=alpha).transient
-    np.testing.assert_array_equal(stages["alpha"], transient)
+    np.testing.assert_array_equal(stages["share"], transient)
     np.testing.assert_array_equal(stages["semantic"][:, 12:], 0.0)
 
   def test_oracle_patch_pools_to_the_grid(self):

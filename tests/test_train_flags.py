@@ -131,6 +131,7 @@ class SemanticCheckTest(parameterized.TestCase):
       ("loss_masking", True, "loss_masking needs evidence='pixel'"),
       ("dense_input_size", 0, "dense_input_size="),
       ("residual_min_alpha", 1.0, "residual_min_alpha="),
+      ("residual_min_share", 1.0, "residual_min_share="),
       ("residual_vote", 0.0, "residual_vote="),
       ("residual_uniformity", -0.1, "residual_uniformity="),
       ("residual_uniform_until", -1, "residual_uniform_until="))

@@ -312,12 +312,14 @@ def test_loss_map_report(residual_run):
   for key in ("precision", "recall", "iou"):
     assert out["pooled"][key] == pytest.approx(quality[key])
   # The 3x3 rule and the gates only take pixels away, and the last
-  # (the smoke config's alpha gate) is the map the loss uses.
+  # (the share floor, after the smoke config's alpha gate) is the map the
+  # loss uses.
   stages = out["pooled"]["stages"]
-  assert set(stages) == {"threshold", "rule", "alpha"}
-  recalls = [stages[k]["recall"] for k in ("threshold", "rule", "alpha")]
+  names = ("threshold", "rule", "alpha", "share")
+  assert set(stages) == set(names)
+  recalls = [stages[k]["recall"] for k in names]
   assert recalls == sorted(recalls, reverse=True)
-  assert stages["alpha"]["recall"] == pytest.approx(quality["recall"])
+  assert stages["share"]["recall"] == pytest.approx(quality["recall"])
   assert "recall after each step" in proc.stdout
   for name in out["worst"]["clean_most_masked"]:
     assert out["per_view"][name]["transient_fraction"] == 0.0
