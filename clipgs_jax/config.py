@@ -212,7 +212,7 @@ class SemanticConfig:
   residual_min_share: float = 0.03  # a view whose map, after the gates,
   #   marks less than this share of its pixels is taken as clean: no
   #   transient pixel, every pixel in the loss (0: off). A fit error
-  #   marks a few regions of a view (bonsai's clean twin: at most 2 %),
+  #   marks a few regions of a view (bonsai's clean twin: up to 2.1 %),
   #   a transient the benchmarks paste 5-42 % of one; a smaller one goes
   #   unmasked (BUILD_NOTES.md, "The share floor")
   features: str = ""           # residual map: "" per pixel, or "alex" /
