@@ -144,7 +144,7 @@ class SemanticConfig:
   #   transient (False: the paper). Pixel evidence scores every view, and
   #   rows a densification just made, or that few views see, sit under
   #   n_min: on bonsai they are mostly scene; not yet the default
-  #   (BUILD_NOTES.md, "Eq. 13's rarely-seen clause")
+  #   (BUILD_NOTES.md, "Tried, reverted")
   accumulate_start: int = 500  # first scored step
   reg_start: int = 2000        # first step with the opacity loss
   prune_start: int = 5000      # first prune after this many steps
