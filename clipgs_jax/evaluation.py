@@ -12,6 +12,7 @@ from clipgs_jax import config as config_lib
 from clipgs_jax import gaussians
 from clipgs_jax import metrics as metrics_lib
 from clipgs_jax import rasterize
+from clipgs_jax import sharding
 from clipgs_jax.data import scene as scene_lib
 
 
@@ -189,17 +190,18 @@ MAP_THRESHOLD = 0.5
 
 @functools.lru_cache(maxsize=None)
 def _view_map_fn(cfg: config_lib.Config, stages: bool = False):
-  """Jitted (params, alive, stats, scorer, view, cam, photo, degree) -> the
-  map the loss would use for that training view now, or with `stages` the
-  residual map after each of its steps (map_sources.residual_stages)."""
+  """Jitted (params, alive, stats, scorer, view, cam, photo, degree, valid)
+  -> the map the loss would use for that training view now, or with
+  `stages` the residual map after each of its steps
+  (map_sources.residual_stages); `valid` as map_sources.residual_map's."""
   from clipgs_jax import map_sources  # pylint: disable=g-import-not-at-top
   map_fn = map_sources.residual_stages if stages else map_sources.view_map
 
-  def fn(params, alive, stats, scorer, view, cam, photo, degree):
+  def fn(params, alive, stats, scorer, view, cam, photo, degree, valid):
     bg = jnp.asarray(cfg.train.background, jnp.float32)
     out = rasterize.render(params, alive, cam, bg, cfg.render, degree)
     return map_fn(scorer, stats, view, out.image, out.alpha, photo,
-                  cfg.semantic)
+                  cfg.semantic, valid)
   return jax.jit(fn)
 
 
@@ -213,9 +215,15 @@ def view_map(params: gaussians.GaussianParams, alive, stats, scorer, views,
   # The one camera, not every view's, moves to the device per call.
   cam = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32),
                      camera_lib.camera_at(views.cameras, index))
+  photo = jnp.asarray(views.images[index], jnp.float32)
+  # A photo on a larger canvas: the step's map sees its pixels only.
+  valid = None
+  if getattr(views, "sizes", None) is not None:
+    valid = sharding.valid_mask(jnp.asarray(views.sizes[index]),
+                                photo.shape[0], photo.shape[1])
   out = _view_map_fn(config_lib.compiled_part(cfg), stages)(
-      params, alive, stats, scorer, jnp.int32(index), cam,
-      jnp.asarray(views.images[index], jnp.float32), degree)
+      params, alive, stats, scorer, jnp.int32(index), cam, photo, degree,
+      valid)
   return jax.tree.map(np.asarray, out)
 
 

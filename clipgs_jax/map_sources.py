@@ -183,19 +183,20 @@ def held_back(rmap: ResidualMap, source: ResidualSource, view: jax.Array,
 
 def residual_stages(source: ResidualSource, stats: residual.ResidualState,
                     view: jax.Array, render: jax.Array, alpha: jax.Array,
-                    photo: jax.Array, sem: config_lib.SemanticConfig
+                    photo: jax.Array, sem: config_lib.SemanticConfig,
+                    valid: jax.Array | None = None
                     ) -> dict[str, jax.Array]:
   """Where the residual map's transient pixels go: {step: the map after
   it}, float32 [H, W] in {0, 1}, for the steps of STAGES the map has; the
   last of them in STAGES' order equals residual_map's `transient` (the
   warm-up samples only the loss weight). Arguments as residual_map's."""
   res = residual.residual(render, photo)
-  stages = _test(source, stats, view, res, sem, None)
+  stages = _test(source, stats, view, res, sem, valid)
   transient = list(stages.values())[-1]
-  for name, gate in _gates(source, view, sem, None, alpha).items():
+  for name, gate in _gates(source, view, sem, valid, alpha).items():
     transient = stages[name] = transient * gate
   if sem.residual_min_share > 0:
-    stages["share"] = transient * _marks_enough(transient, None, sem)
+    stages["share"] = transient * _marks_enough(transient, valid, sem)
   return stages
 
 
@@ -261,14 +262,16 @@ def oracle_patch_maps(masks, grid: int) -> jax.Array:
 
 def view_map(scorer, stats: residual.ResidualState | None, view: jax.Array,
              render: jax.Array, alpha: jax.Array, photo: jax.Array,
-             sem: config_lib.SemanticConfig) -> jax.Array:
+             sem: config_lib.SemanticConfig,
+             valid: jax.Array | None = None) -> jax.Array:
   """float32 [H, W], the map m a training step on `view` would use now:
   the residual map for a ResidualSource (from `render` and `alpha`, the
-  view rendered by the current model; m does not depend on the warm-up's
-  sampling, and before sem.residual_start it is the test's map, which the
-  step does not use yet: held_back), else the static map of a
-  guidance.PixelMapScorer (`render` unread)."""
+  view rendered by the current model; `valid` as residual_map's; m does
+  not depend on the warm-up's sampling, and before sem.residual_start it
+  is the test's map, which the step does not use yet: held_back), else
+  the static map of a guidance.PixelMapScorer (`render` unread)."""
   if isinstance(scorer, ResidualSource):
     return residual_map(scorer, stats, view, render, photo, jnp.int32(0),
-                        jax.random.key(0), sem, alpha=alpha).transient
+                        jax.random.key(0), sem, valid=valid,
+                        alpha=alpha).transient
   return scorer.score_map(view)

@@ -259,6 +259,40 @@ class CanvasTest(absltest.TestCase):
       self.assertAlmostEqual(on_canvas[k][1], by_itself[k][0], places=4)
     self.assertEqual(on_canvas["images"][1].shape, (24, 18, 3))
 
+  def test_padded_view_map_sees_the_photo_only(self):
+    """The map mask quality and the loss-map report read for a photo on a
+    larger canvas is the step's: nothing outside the photo, and the 3x3
+    rule and share floor over its pixels (the photo alone gives it)."""
+    from clipgs_jax import map_sources  # pylint: disable=g-import-not-at-top
+    scene = test_train.synthetic_scene(num=24, size=24, num_train=2,
+                                       num_test=2)
+    views = scene.train
+    images = np.array(views.images)
+    images[1, :, 18:] = 0.0
+    cut = scene_lib.Views(cameras=views.cameras, images=images,
+                          names=views.names, masks=None,
+                          sizes=np.array([[24, 24], [18, 24]], np.int32))
+    alone = test_train.Views(
+        cameras=jax.tree.map(lambda x: x[1:], views.cameras).replace(
+            width=18),
+        images=views.images[1:, :, :18], names=views.names[1:])
+    cfg = test_train.TEST_CFG
+    cfg = dataclasses.replace(cfg, semantic=dataclasses.replace(
+        cfg.semantic, residual_min_alpha=0.0, residual_min_share=0.05))
+    params = synthetic.random_params(40, seed=2, degree=1, spread=0.6)
+    alive = jnp.ones((40,), bool)
+    stats = residual.ResidualState.initial().replace(
+        threshold=jnp.float32(0.1))
+    args = (params, alive, stats, map_sources.ResidualSource())
+    on_canvas = evaluation.view_map(*args, cut, 1, cfg, jnp.int32(1))
+    by_itself = evaluation.view_map(*args, alone, 0, cfg, jnp.int32(1))
+    self.assertGreater(float(np.sum(by_itself)), 0.05 * 18 * 24)
+    np.testing.assert_array_equal(on_canvas[:, 18:], 0.0)
+    np.testing.assert_array_equal(on_canvas[:, :18], by_itself)
+    stages = evaluation.view_map(*args, cut, 1, cfg, jnp.int32(1),
+                                 stages=True)
+    np.testing.assert_array_equal(stages["share"], on_canvas)
+
   def test_padded_pixels_are_no_residual(self):
     res = jnp.asarray(np.random.default_rng(0).random((30, 32)), jnp.float32)
     valid = sharding.valid_mask(jnp.array([18, 24]), 30, 32)
