@@ -116,6 +116,10 @@ class Browser:
     # A software-rendered frame of a large scene blocks the page's thread
     # for tens of seconds, and every script waits for it.
     self.driver.set_script_timeout(300)
+    # Every command (a click too) waits for that frame, and selenium's
+    # client gives up on the driver after 120 s, which a 2-core box with
+    # trainings beside the tests exceeded (12-06): the same 300 s.
+    self.driver.command_executor.client_config.timeout = 300
     # The page gets exactly `window` (headless Chromium's window size
     # counts a toolbar that it does not draw).
     self.driver.execute_cdp_cmd("Emulation.setDeviceMetricsOverride", {
