@@ -16,6 +16,10 @@ from PIL import Image
 CHROMIUM, CHROMEDRIVER = "chromium", "chromedriver"
 # Small: swiftshader's time per frame grows with the pixels drawn.
 WINDOW = (640, 480)
+# How long a command may wait for the page: a software-rendered frame of a
+# large scene blocks the page's thread for tens of seconds, minutes on a
+# 2-core box with trainings beside the tests.
+PAGE_WAIT_S = 300
 # Headless as root, with no network but localhost, on a machine without a
 # GPU: swiftshader is Chromium's software GL, which WebGL needs here.
 FLAGS = ("--headless=new", "--no-sandbox", "--disable-gpu",
@@ -113,13 +117,11 @@ class Browser:
                                    options=options)
     self.driver.execute_cdp_cmd("Page.addScriptToEvaluateOnNewDocument",
                                 {"source": _PAGE_SETUP})
-    # A software-rendered frame of a large scene blocks the page's thread
-    # for tens of seconds, and every script waits for it.
-    self.driver.set_script_timeout(300)
-    # Every command (a click too) waits for that frame, and selenium's
-    # client gives up on the driver after 120 s, which a 2-core box with
-    # trainings beside the tests exceeded (12-06): the same 300 s.
-    self.driver.command_executor.client_config.timeout = 300
+    # Every script and command (a click too) waits for the page's frame;
+    # selenium's client gives up on the driver after 120 s by default,
+    # which the loaded box exceeded (12-06).
+    self.driver.set_script_timeout(PAGE_WAIT_S)
+    self.driver.command_executor.client_config.timeout = PAGE_WAIT_S
     # The page gets exactly `window` (headless Chromium's window size
     # counts a toolbar that it does not draw).
     self.driver.execute_cdp_cmd("Emulation.setDeviceMetricsOverride", {
@@ -130,8 +132,19 @@ class Browser:
     self.driver.get(url)
 
   def screenshot(self) -> np.ndarray:
-    """uint8 [H, W, 3] of the page as shown."""
-    png = self.driver.get_screenshot_as_png()
+    """uint8 [H, W, 3] of the page as shown. Chromedriver stops waiting
+    for a busy renderer after 10 s; this asks again for up to PAGE_WAIT_S
+    (the loaded box's frames took longer, 12-06)."""
+    # pylint: disable=g-import-not-at-top
+    from selenium.common import exceptions
+    end = time.monotonic() + PAGE_WAIT_S
+    while True:
+      try:
+        png = self.driver.get_screenshot_as_png()
+        break
+      except exceptions.TimeoutException:
+        if time.monotonic() > end:
+          raise
     return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"))
 
   def rect(self, css: str) -> tuple[int, int, int, int] | None:
