@@ -185,6 +185,24 @@ class DeviceLanesTest(absltest.TestCase):
         np.testing.assert_allclose(b, a, rtol=1e-5, atol=atol, err_msg=name)
 
 
+def _cut_second_view(split: str):
+  """(two 24x24 views of a synthetic scene's `split`, the second an 18-wide
+  photo on the canvas; that photo as a view by itself)."""
+  scene = test_train.synthetic_scene(num=24, size=24, num_train=2,
+                                     num_test=2)
+  views = getattr(scene, split)
+  images = np.array(views.images)
+  images[1, :, 18:] = 0.0
+  cut = scene_lib.Views(cameras=views.cameras, images=images,
+                        names=views.names, masks=None,
+                        sizes=np.array([[24, 24], [18, 24]], np.int32))
+  alone = test_train.Views(
+      cameras=jax.tree.map(lambda x: x[1:], views.cameras).replace(
+          width=18),
+      images=views.images[1:, :, :18], names=views.names[1:])
+  return cut, alone
+
+
 class CanvasTest(absltest.TestCase):
   """A photo padded onto a larger canvas changes no loss, map or metric."""
 
@@ -237,19 +255,8 @@ class CanvasTest(absltest.TestCase):
         float(metrics.psnr(photo_out.image, self.photo)), places=4)
 
   def test_padded_test_view_same_metrics(self):
-    scene = test_train.synthetic_scene(num=24, size=24, num_train=2,
-                                       num_test=2)
     cfg = test_train.TEST_CFG
-    views = scene.test
-    images = np.array(views.images)
-    images[1, :, 18:] = 0.0
-    cut = scene_lib.Views(cameras=views.cameras, images=images,
-                          names=views.names, masks=None,
-                          sizes=np.array([[24, 24], [18, 24]], np.int32))
-    alone = test_train.Views(
-        cameras=jax.tree.map(lambda x: x[1:], views.cameras).replace(
-            width=18),
-        images=views.images[1:, :, :18], names=views.names[1:])
+    cut, alone = _cut_second_view("test")
     params = synthetic.random_params(40, seed=2, degree=1, spread=0.6)
     alive = jnp.ones((40,), bool)
     on_canvas = evaluation.evaluate(params, alive, cut, cfg,
@@ -264,18 +271,7 @@ class CanvasTest(absltest.TestCase):
     larger canvas is the step's: nothing outside the photo, and the 3x3
     rule and share floor over its pixels (the photo alone gives it)."""
     from clipgs_jax import map_sources  # pylint: disable=g-import-not-at-top
-    scene = test_train.synthetic_scene(num=24, size=24, num_train=2,
-                                       num_test=2)
-    views = scene.train
-    images = np.array(views.images)
-    images[1, :, 18:] = 0.0
-    cut = scene_lib.Views(cameras=views.cameras, images=images,
-                          names=views.names, masks=None,
-                          sizes=np.array([[24, 24], [18, 24]], np.int32))
-    alone = test_train.Views(
-        cameras=jax.tree.map(lambda x: x[1:], views.cameras).replace(
-            width=18),
-        images=views.images[1:, :, :18], names=views.names[1:])
+    cut, alone = _cut_second_view("train")
     cfg = test_train.TEST_CFG
     cfg = dataclasses.replace(cfg, semantic=dataclasses.replace(
         cfg.semantic, residual_min_alpha=0.0, residual_min_share=0.05))
