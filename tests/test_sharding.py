@@ -22,6 +22,7 @@ from clipgs_jax import config_file
 from clipgs_jax import evaluation
 from clipgs_jax import guidance
 from clipgs_jax import losses
+from clipgs_jax import map_sources
 from clipgs_jax import metrics
 from clipgs_jax import project
 from clipgs_jax import rasterize
@@ -270,7 +271,6 @@ class CanvasTest(absltest.TestCase):
     """The map mask quality and the loss-map report read for a photo on a
     larger canvas is the step's: nothing outside the photo, and the 3x3
     rule and share floor over its pixels (the photo alone gives it)."""
-    from clipgs_jax import map_sources  # pylint: disable=g-import-not-at-top
     cut, alone = _cut_second_view("train")
     cfg = test_train.TEST_CFG
     cfg = dataclasses.replace(cfg, semantic=dataclasses.replace(
