@@ -220,13 +220,6 @@ class SemanticConfig:
   #   majority verdict of the residual test inside them
   residual_vote: float = 0.5   # features: a region is transient when at
   #   least this share of its pixels fail the residual test (SLS-agg: 0.5)
-  residual_keep: float = 0.0   # features: a region the step's map marked
-  #   at the view's last visit stays transient while at least this share
-  #   of its pixels fail the residual test (0: every visit votes at
-  #   residual_vote). A transient seen by few views is fit by none while
-  #   masked; static scene masked in one view is fit by the others, so its
-  #   residual falls and it leaves (BUILD_NOTES.md, "Transient masks
-  #   without an oracle")
   residual_uniformity: float = 0.35  # features: before
   #   residual_uniform_until, a region the vote calls transient is masked
   #   only where the residual's std / mean over its pixels is below this

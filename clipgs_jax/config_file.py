@@ -208,11 +208,6 @@ def _residual_problems(sem: config_lib.SemanticConfig) -> list[str]:
                     "in [0, 1)")
   if not 0.0 < sem.residual_vote <= 1.0:
     problems.append(f"residual_vote={sem.residual_vote} is not in (0, 1]")
-  if not 0.0 <= sem.residual_keep <= 1.0:
-    problems.append(f"residual_keep={sem.residual_keep} is not in [0, 1]")
-  if sem.residual_keep and not sem.features:
-    problems.append("residual_keep needs feature regions (semantic.features"
-                    " = alex or vgg): it keeps regions, not pixels")
   if not sem.residual_uniformity >= 0:
     problems.append(f"residual_uniformity={sem.residual_uniformity} must "
                     "be >= 0 (0: no gate)")

@@ -226,8 +226,7 @@ def vote(inlier: jax.Array, labels: jax.Array, num_regions: int,
     inlier: bool or float [H, W], 1 = the residual test calls it static.
     labels: int [H, W] in [0, num_regions), from `regions`.
     num_regions: int, the clustering's num_regions.
-    min_outlier_fraction: float in [0, 1], or float [num_regions]: one
-      per region.
+    min_outlier_fraction: float in [0, 1].
   """
   flat = jnp.asarray(labels).reshape(-1)
   outlier = 1.0 - jnp.asarray(inlier, jnp.float32).reshape(-1)

@@ -77,29 +77,9 @@ def _test(source: ResidualSource, stats: residual.ResidualState,
   inlier = residual.inliers(res, stats.threshold, sem.residual_rule, valid)
   steps["rule"] = 1.0 - inlier
   if source.labels is not None:
-    share = sem.residual_vote
-    if stats.held is not None:
-      share = jnp.where(stats.held[view] > 0, sem.residual_keep, share)
     steps["vote"] = features.vote(inlier, source.labels[view],
-                                  source.num_regions, share)
+                                  source.num_regions, sem.residual_vote)
   return steps
-
-
-def remember(stats: residual.ResidualState, source: ResidualSource,
-             view: jax.Array, transient: jax.Array
-             ) -> residual.ResidualState:
-  """`stats` with view `view`'s held regions replaced by those that more
-  than half of `transient` (float [H, W], the map the step used) covers;
-  `stats` itself when it holds none (semantic.residual_keep = 0)."""
-  if stats.held is None:
-    return stats
-  flat = source.labels[view].reshape(-1)
-  size = jax.ops.segment_sum(jnp.ones_like(flat, jnp.float32), flat,
-                             source.num_regions)
-  marked = jax.ops.segment_sum(transient.reshape(-1).astype(jnp.float32),
-                               flat, source.num_regions)
-  row = (marked > 0.5 * size).astype(jnp.float32)
-  return stats.replace(held=stats.held.at[view].set(row))
 
 
 def _gates(source: ResidualSource, view: jax.Array,

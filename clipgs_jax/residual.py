@@ -44,13 +44,9 @@ class ResidualState:
     histogram: float32 [HISTOGRAM_BINS], decayed counts of the residuals of
       past steps' pixels over [0, 1].
     threshold: float32 [], the inlier threshold the next step uses.
-    held: None, or float32 [V, K] in {0, 1}: per training view, the
-      feature regions its map marked at its last visit (1), which the
-      next visit keeps at semantic.residual_keep (map_sources.remember).
   """
   histogram: jax.Array
   threshold: jax.Array
-  held: jax.Array | None = None
 
   @classmethod
   def initial(cls) -> "ResidualState":
@@ -117,7 +113,7 @@ def update(state: ResidualState, res: jax.Array | None = None, *,
                             median_factor * _quantile(cumulative, 0.5))
   if minimum > 0:
     threshold = jnp.maximum(threshold, jnp.float32(minimum))
-  return state.replace(histogram=histogram, threshold=threshold)
+  return ResidualState(histogram=histogram, threshold=threshold)
 
 
 def _box3(x: jax.Array) -> jax.Array:

@@ -15,12 +15,10 @@ from clipgs_jax import batch_step
 from clipgs_jax import camera as camera_lib
 from clipgs_jax import config as config_lib
 from clipgs_jax import densify
-from clipgs_jax import features
 from clipgs_jax import gaussians
 from clipgs_jax import guidance
 from clipgs_jax import initialize
 from clipgs_jax import loop
-from clipgs_jax import map_sources
 from clipgs_jax import metrics as metrics_lib
 from clipgs_jax import optim
 from clipgs_jax import residual as residual_lib
@@ -146,7 +144,6 @@ def train_step(state: state_lib.TrainState, batch: Batch, scorer=None, *,
                    semantic_loss=vp.terms["semantic_loss"])
   if vp.rmap is not None:
     maps = view_lib.update_maps(maps, cfg.semantic, res=vp.rmap.residual)
-    maps = map_sources.remember(maps, scorer, view, vp.rmap.transient)
     metrics["residual_threshold"] = state.maps.threshold
   new_state = state.replace(params=params, opt_state=opt_state,
                             densify=stats, semantic=semantic_stats,
@@ -194,19 +191,7 @@ def initial_state(cfg: config_lib.Config, scene) -> state_lib.TrainState:
   params, alive = initialize.initialize(
       points, getattr(scene, "point_colors", None), centers, cfg.gaussians,
       seed=cfg.train.seed)
-  state = init_state(cfg, params, alive)
-  sem = cfg.semantic
-  if sem.uses_residual and sem.residual_keep:
-    if batched(cfg, scene):
-      raise ValueError("semantic.residual_keep: held regions are kept for "
-                       "one view a step (train_step); this run trains "
-                       "with batch_step (batch_size > 1 or photos of "
-                       "different sizes). Set residual_keep=0.")
-    views = np.shape(scene.train.images)[0]
-    regions = features.Clustering(net=sem.features).num_regions
-    state = state.replace(maps=state.maps.replace(
-        held=jnp.zeros((views, regions), jnp.float32)))
-  return state
+  return init_state(cfg, params, alive)
 
 
 def batched(cfg: config_lib.Config, scene) -> bool:

@@ -330,37 +330,6 @@ class SourceTest(absltest.TestCase):
     self.assertEqual([float(maps[v][right]) for v in (0.5, 0.7, 0.9)],
                      [1.0, 0.0, 0.0])
 
-  def test_held_regions_stay_at_the_keep_share(self):
-    photo = jnp.zeros((16, 16, 3))
-    render = photo.at[:10].set(1.0)        # as above: 80 / 96 and 80 / 160
-    source = map_sources.ResidualSource(
-        labels=jnp.zeros((2, 16, 16), jnp.int32).at[:, :, 8:].set(1)
-        .at[:, 12:].set(1), num_regions=2)
-    stats = residual.ResidualState.initial().replace(
-        threshold=jnp.float32(0.5), held=jnp.zeros((2, 2), jnp.float32))
-    sem = self._sem(residual_vote=0.7, residual_keep=0.4)
-
-    def right_region(stats, view):
-      m = map_sources.residual_map(source, stats, jnp.int32(view), render,
-                                   photo, jnp.int32(5), jax.random.key(0),
-                                   sem).transient
-      return float(m[0, 15]), m
-    # Not held: region 1's half is under the vote's 0.7.
-    self.assertEqual(right_region(stats, 1)[0], 0.0)
-    # Held in view 1 only: half is over the keep share 0.4 there.
-    held = stats.replace(held=stats.held.at[1, 1].set(1.0))
-    self.assertEqual(right_region(held, 1)[0], 1.0)
-    self.assertEqual(right_region(held, 0)[0], 0.0)
-    # remember: a region is held when more than half of it is marked.
-    _, m = right_region(stats, 0)          # region 0 marked, region 1 not
-    after = map_sources.remember(held, source, jnp.int32(0), m)
-    np.testing.assert_array_equal(after.held, [[1.0, 0.0], [0.0, 1.0]])
-    half = jnp.zeros((16, 16)).at[:10, 8:].set(1.0)   # 80 of 160: not more
-    after = map_sources.remember(after, source, jnp.int32(1), half)
-    np.testing.assert_array_equal(after.held[1], [0.0, 0.0])
-    self.assertIsNone(map_sources.remember(
-        residual.ResidualState.initial(), source, jnp.int32(0), m).held)
-
   def test_stages_end_in_the_map(self):
     photo = jnp.zeros((16, 16, 3))
     render = photo.at[2:14, 2:14].set(1.0).at[6:10, 6:10].set(0.2)
