@@ -261,7 +261,7 @@ def flush_scores(flog: FitLog, ctx: Context) -> FitLog:
   keys = guidance.per_step_value_keys(ctx.cfg.semantic)
   rows = []
   for step, batch in jax.device_get(flog.pending):
-    # One row per view (a step of batch_step has B of each value).
+    # One row per view (a step has B of each value).
     for i in range(np.size(batch["view"])):
       values = {k: np.ravel(v)[i] for k, v in batch.items()}
       if not values["scored"]:

@@ -10,7 +10,7 @@ device, so a device holds only its lanes' photos, cameras and per-view
 maps, and a process of a multi-host run reads only its lanes' photos
 (`holds`, data.scene.load_scene's train_views). Everything else is
 replicated: the parameters, Adam's moments, every per-row statistic and
-the PRNG key (batch_step.py says how a step combines its views).
+the PRNG key (step.py says how a step combines its views).
 """
 
 import os
@@ -184,6 +184,13 @@ def lanes_of(scene, batch_size: int, mesh: Mesh
                      f"{num_views} training views; lower it.")
   rows = _rows(views, num_views, batch_size, held_lanes(mesh, batch_size))
   height, width = np.shape(views.images)[1:3]
+  cams = views.cameras
+  if np.ndim(views.images) != 4 or (cams.width, cams.height) != (width,
+                                                                height):
+    raise ValueError(f"sharding.lanes_of: cameras are {cams.width}x"
+                     f"{cams.height} but images are "
+                     f"{np.shape(views.images)}; images must be [V, "
+                     f"{cams.height}, {cams.width}, 3].")
   cw, ch = _canvas(width, height)
   sizes = getattr(views, "sizes", None)
   if sizes is None and (cw, ch) != (width, height):

@@ -1,8 +1,6 @@
 """One training view: which view a step draws, and its render and gradients.
 
-train.train_step (one view per step) and batch_step (a batch of views
-over devices) share these, so a view of a batch is rendered, fitted and
-differentiated exactly as the one view of a one-view step.
+The train step (step.py) runs these once for each view of its batch.
 """
 
 from typing import NamedTuple
@@ -226,10 +224,10 @@ def semantic_increment(vp: ViewPass, scorer, *, view: jax.Array,
   """One view's semantic evidence and its per-view metrics.
 
   Returns the SemanticStats increment (zero when the step does not
-  score), which train.train_step adds to the run's stats and batch_step
-  sums over its views first, and the metrics: map_mean (the map's mean
-  over `valid`) and scored, with the residual map the share of it that
-  the agreement rule would keep, with the image-level rule the scores.
+  score), which the train step sums over its views and adds to the run's
+  stats, and the metrics: map_mean (the map's mean over `valid`) and
+  scored, with the residual map the share of it that the agreement rule
+  would keep, with the image-level rule the scores.
   """
   sem = cfg.semantic
   zero = state_lib.SemanticStats.zeros(vp.proj.depths.shape[0])
@@ -264,13 +262,12 @@ def semantic_increment(vp: ViewPass, scorer, *, view: jax.Array,
 
 
 def update_maps(maps: residual_lib.ResidualState,
-                sem: config_lib.SemanticConfig, *, res: jax.Array | None = None,
-                histogram: jax.Array | None = None
+                sem: config_lib.SemanticConfig, histogram: jax.Array
                 ) -> residual_lib.ResidualState:
   """The residual map's statistics after a step: residual.update with the
-  run's threshold settings, on one view's residuals `res` or on the
-  `histogram` of a batch's (residual.counts summed over its views)."""
-  return residual_lib.update(maps, res, quantile=sem.residual_quantile,
+  run's threshold settings on the `histogram` of the step's residuals
+  (residual.counts summed over its views)."""
+  return residual_lib.update(maps, quantile=sem.residual_quantile,
                              decay=sem.residual_decay,
                              median_factor=sem.residual_median_factor,
                              minimum=sem.residual_min_threshold,

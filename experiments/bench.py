@@ -128,7 +128,7 @@ _HOST_DEVICES = flags.DEFINE_integer(
 _DEVICE_LANES = flags.DEFINE_enum(
     "device_lanes", "auto", ["auto", "scan", "vmap"],
     "views: how a device renders its B / D lanes: auto (vmap on an "
-    "accelerator, scan on a CPU: batch_step.lanes_vmapped), or either.")
+    "accelerator, scan on a CPU: step.lanes_vmapped), or either.")
 flags.mark_flag_as_required("bench")
 
 

@@ -1,7 +1,6 @@
 """Tests for the CLIP scorer wired through guidance, and its lazy import."""
 
 import dataclasses
-import functools
 import os
 import subprocess
 import sys
@@ -14,6 +13,7 @@ from absl.testing import absltest
 
 from clipgs_jax import config
 from clipgs_jax import guidance
+from clipgs_jax import step
 from clipgs_jax import train
 from test_train import TEST_CFG, synthetic_scene  # pylint: disable=g-bad-import-order
 
@@ -50,9 +50,10 @@ class ClipScorerTest(absltest.TestCase):
     cfg = train.resolve(dataclasses.replace(TEST_CFG, semantic=self.sem),
                         scene)
     state = train.initial_state(cfg, scene)
-    step = jax.jit(functools.partial(train.train_step, cfg=cfg))
-    state, metrics = step(state, train.make_batch(scene.train), self.scorer)
-    s_hat_d = float(metrics["s_hat_d"])
+    step_fn, lanes, state, scorer = step.for_scene(cfg, scene, state,
+                                                   self.scorer)
+    state, metrics = step_fn(state, lanes, scorer)
+    s_hat_d = float(metrics["s_hat_d"][0])
     self.assertTrue(0.0 <= s_hat_d <= 1.0)
     seen = np.asarray(state.semantic.n) > 0
     self.assertGreater(seen.sum(), 0)

@@ -14,7 +14,9 @@ from absl.testing import parameterized
 from clipgs_jax import config
 from clipgs_jax import densify
 from clipgs_jax import guidance
+from clipgs_jax import sharding
 from clipgs_jax import state as state_lib
+from clipgs_jax import step
 from clipgs_jax import train
 from test_densify import CFG as DENSIFY_CFG  # pylint: disable=g-bad-import-order
 from test_densify import _drive, _make_state, _row_leaves, _tag_state  # pylint: disable=g-bad-import-order
@@ -308,12 +310,13 @@ class PruneTest(parameterized.TestCase):
     self.assertGreater(pruned, 0)
 
 
-@functools.lru_cache(maxsize=None)
-def _jitted_train_step(cfg):
-  """The jitted (not donating) train step of `cfg`, one per config: tests
-  that step the same config share its compile (BUILD_NOTES.md, "Test and
-  compile time")."""
-  return jax.jit(functools.partial(train.train_step, cfg=cfg))
+def _one_step(cfg, scene, state, scorer=None):
+  """(metrics, state after) of one train step from a copy of `state` (the
+  step donates its state; the caller keeps its own)."""
+  step_fn, lanes, copy, scorer = step.for_scene(
+      cfg, scene, jax.tree.map(jnp.copy, state), scorer)
+  after, metrics = step_fn(copy, lanes, scorer)
+  return after, metrics
 
 
 def _masked_scene():
@@ -330,11 +333,13 @@ class WiredStepTest(absltest.TestCase):
   def test_off_is_the_vanilla_step(self):
     scene = synthetic_scene()
     cfg = train.resolve(TEST_CFG, scene)
-    state = train.initial_state(cfg, scene)
-    batch = train.make_batch(scene.train)
-    def lowered(c):
-      return jax.jit(lambda s, b: train.train_step(s, b, cfg=c)).lower(
-          state, batch).as_text()
+    mesh = sharding.make_mesh(1)
+    state = sharding.replicate(train.initial_state(cfg, scene), mesh)
+    lanes, _ = sharding.lanes_of(scene, 1, mesh)
+    def lowered(c, scorer=None):
+      return jax.jit(functools.partial(
+          step.train_step, cfg=c, mesh=mesh, vmap_lanes=False)).lower(
+              state, lanes, scorer).as_text()
     vanilla = lowered(cfg)
     # Guidance off, whatever its other fields: the same program.
     for sem in (config.SemanticConfig(tau=0.3, beta=0.5),
@@ -342,8 +347,8 @@ class WiredStepTest(absltest.TestCase):
       self.assertEqual(lowered(dataclasses.replace(cfg, semantic=sem)),
                        vanilla)
     with self.assertRaisesRegex(ValueError, "takes no"):
-      train.train_step(state, batch, guidance.OracleScorer(
-          masks=jnp.zeros((8, 32, 32), bool), saturation=0.1), cfg=cfg)
+      lowered(cfg, guidance.OracleScorer(
+          masks=jnp.zeros((1, 8, 32, 32), bool), saturation=0.1))
 
   def _pixel_step(self, map_value, **semantic_fields):
     """One scored step of the pixel-evidence train step with a constant
@@ -354,8 +359,8 @@ class WiredStepTest(absltest.TestCase):
     cfg = train.resolve(dataclasses.replace(TEST_CFG, semantic=sem), scene)
     state = train.initial_state(cfg, scene)
     maps = jnp.full(scene.train.images.shape[:3], map_value, jnp.float32)
-    after, metrics = _jitted_train_step(cfg)(
-        state, train.make_batch(scene.train), guidance.PixelMapScorer(maps))
+    after, metrics = _one_step(cfg, scene, state,
+                               guidance.PixelMapScorer(maps))
     return state, after, metrics
 
   def test_pixel_step_accumulates_the_map(self):
@@ -369,7 +374,7 @@ class WiredStepTest(absltest.TestCase):
                                0.25 * np.asarray(stats.weight)[seen],
                                rtol=1e-5)
     np.testing.assert_array_equal(np.asarray(stats.n), seen.astype(float))
-    self.assertAlmostEqual(float(metrics["map_mean"]), 0.25, places=6)
+    self.assertAlmostEqual(float(metrics["map_mean"][0]), 0.25, places=6)
 
   def test_agreement_weights_the_map(self):
     _, raw, _ = self._pixel_step(0.25, agreement=False)
@@ -400,7 +405,7 @@ class WiredStepTest(absltest.TestCase):
                                     np.asarray(before.params.sh_dc)))
 
   def test_oracle_fit(self):
-    train.make_train_step.cache_clear()
+    step.make_train_step.cache_clear()
     guidance.make_prune.cache_clear()
     scene = _masked_scene()
     sem = config.SemanticConfig(

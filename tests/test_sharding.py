@@ -15,7 +15,6 @@ import jax.numpy as jnp
 import numpy as np
 from absl.testing import absltest
 
-from clipgs_jax import batch_step
 from clipgs_jax import camera
 from clipgs_jax import config
 from clipgs_jax import config_file
@@ -28,6 +27,7 @@ from clipgs_jax import project
 from clipgs_jax import rasterize
 from clipgs_jax import residual
 from clipgs_jax import sharding
+from clipgs_jax import step
 from clipgs_jax import train
 from clipgs_jax import view
 from clipgs_jax.data import scene as scene_lib
@@ -128,14 +128,6 @@ class LanesTest(absltest.TestCase):
     with self.assertRaisesRegex(Exception, "batch_size=0"):
       config_file.check({"train": {"batch_size": 0}})
 
-  def test_one_view_per_step_on_photos_of_one_size_is_train_step(self):
-    scene = test_train.synthetic_scene(num=4, size=16, num_train=4)
-    cfg = test_train.TEST_CFG
-    self.assertFalse(train.batched(cfg, scene))
-    self.assertTrue(train.batched(dataclasses.replace(
-        cfg, train=dataclasses.replace(cfg.train, batch_size=2)), scene))
-    self.assertTrue(train.batched(cfg, sharded_run.canvas_scene()))
-
 
 class DeviceLanesTest(absltest.TestCase):
 
@@ -146,7 +138,7 @@ class DeviceLanesTest(absltest.TestCase):
     with loss masking (ORACLE-PIXEL evidence; the residual map)."""
     scene = sharded_run.canvas_scene()
     mesh = sharding.make_mesh(4, jax.devices()[:1])
-    self.assertFalse(batch_step.lanes_vmapped(mesh))      # a CPU scans
+    self.assertFalse(step.lanes_vmapped(mesh))      # a CPU scans
     lanes, rows = sharding.lanes_of(scene, 4, mesh)
     h, w = lanes.images.shape[2:4]
     base = sharded_run.config()
@@ -161,9 +153,9 @@ class DeviceLanesTest(absltest.TestCase):
       for vmap in (False, True):
         state = sharding.replicate(
             sharded_run.anisotropic_state(cfg, scene), mesh)
-        step = batch_step.make_step(cfg, mesh, vmap_lanes=vmap)
+        step_fn = step.make_train_step(cfg, mesh, vmap_lanes=vmap)
         for _ in range(3):
-          state, metrics = step(state, lanes, scorer)
+          state, metrics = step_fn(state, lanes, scorer)
         ends.append((state, metrics))
       (scanned, m_scan), (vmapped, m_vmap) = ends
       if scorer_name == "oracle":

@@ -5,7 +5,6 @@ pytest process compiles the train step once for both files.
 """
 
 import dataclasses
-import functools
 import os
 
 import jax
@@ -22,6 +21,8 @@ from clipgs_jax import gaussians
 from clipgs_jax import guidance
 from clipgs_jax import loop
 from clipgs_jax import sh
+from clipgs_jax import sharding
+from clipgs_jax import step
 from clipgs_jax import train
 from clipgs_jax import view
 
@@ -154,7 +155,8 @@ class ViewAndBackgroundTest(absltest.TestCase):
     scene = synthetic_scene(num=4, size=16, num_train=2, num_test=1)
     bad = dataclasses.replace(scene.train, images=scene.train.images[:, :8])
     with self.assertRaisesRegex(ValueError, "cameras are 16x16"):
-      train.make_batch(bad)
+      sharding.lanes_of(dataclasses.replace(scene, train=bad), 1,
+                        sharding.make_mesh(1))
     with self.assertRaisesRegex(ValueError, "extent .* is not positive"):
       train.resolve(TEST_CFG, dataclasses.replace(scene, extent=0.0))
     with self.assertRaisesRegex(ValueError, "resolve"):
@@ -170,9 +172,11 @@ class ViewAndBackgroundTest(absltest.TestCase):
     state = train.init_state(cfg, *gaussians.empty(8, 1))
     black = dataclasses.replace(
         scene.train, images=np.zeros_like(scene.train.images))
-    _, metrics = jax.jit(functools.partial(train.train_step, cfg=cfg))(
-        state, train.make_batch(black))
-    values = {k: float(v) for k, v in jax.device_get(metrics).items()}
+    step_fn, lanes, state, _ = step.for_scene(
+        cfg, dataclasses.replace(scene, train=black), state)
+    _, metrics = step_fn(state, lanes, None)
+    values = {k: float(v) for k, v in jax.device_get(metrics).items()
+              if k != "view"}
     self.assertAlmostEqual(values["psnr"], 100.0, places=3)
     self.assertEqual(values["l1"], 0.0)
     loop.check_finite(1, values)
@@ -183,7 +187,7 @@ class EndToEndTest(absltest.TestCase):
   def test_smoke_run(self):
     # Fresh jitted functions, so the compile count below does not depend on
     # which other test compiled the same config first in this process.
-    train.make_train_step.cache_clear()
+    step.make_train_step.cache_clear()
     densify.make_densify.cache_clear()
     scene = synthetic_scene()
     workdir = self.create_tempdir().full_path
@@ -228,9 +232,8 @@ class EndToEndTest(absltest.TestCase):
     scene = synthetic_scene()
     cfg = train.resolve(TEST_CFG, scene)
     state = train.initial_state(cfg, scene)
-    batch = train.make_batch(scene.train)
     means = np.asarray(state.params.means)
-    out = timing.step_stages(cfg, batch, state.params, state.alive,
+    out = timing.step_stages(cfg, scene, state.params, state.alive,
                              view=0, repeats=1)
     self.assertGreater(out["train_step"]["wall_ms"], 0)
     self.assertEqual(out["n"], int(np.sum(np.asarray(state.alive))))
@@ -245,7 +248,9 @@ class EndToEndTest(absltest.TestCase):
         eval=config.EvalConfig(curve_points=3),
         train=dataclasses.replace(TEST_CFG.train, seed=7, log_every=5,
                                   eval_every=0, checkpoint_every=9))
-    for make in (train.make_train_step, densify.make_densify,
+    mesh = sharding.make_mesh(1)
+    make_step = lambda c: step.make_train_step(c, mesh)
+    for make in (make_step, densify.make_densify,
                  densify.make_reset_opacity, densify.make_count_requests):
       self.assertIs(make(host), make(TEST_CFG), make.__name__)
     # The prune rule is not the step's: the step is shared, the prune not.
@@ -253,14 +258,12 @@ class EndToEndTest(absltest.TestCase):
     strict = dataclasses.replace(TEST_CFG, semantic=oracle)
     lenient = dataclasses.replace(TEST_CFG, semantic=dataclasses.replace(
         oracle, tau_p=0.9, max_prune_fraction=1.0))
-    self.assertIs(train.make_train_step(strict),
-                  train.make_train_step(lenient))
+    self.assertIs(make_step(strict), make_step(lenient))
     self.assertIsNot(guidance.make_prune(strict), guidance.make_prune(lenient))
     # What the step computes with is not shared.
     dssim = dataclasses.replace(
         TEST_CFG, train=dataclasses.replace(TEST_CFG.train, lambda_dssim=0.5))
-    self.assertIsNot(train.make_train_step(dssim),
-                     train.make_train_step(TEST_CFG))
+    self.assertIsNot(make_step(dssim), make_step(TEST_CFG))
     # A dropped field fails loudly where compiled code would read it (the
     # fits in this file trace every function above with dropped fields).
     part = config.compiled_part(host)

@@ -23,9 +23,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from clipgs_jax import batch_step
 from clipgs_jax import config as config_lib
 from clipgs_jax import sharding
+from clipgs_jax import step as step_lib
 from clipgs_jax import train
 from clipgs_jax.data import scene as scene_lib
 from clipgs_jax.lab import timing
@@ -39,8 +39,7 @@ def views_per_second(scene_path: str, downscale: int, *,
                      vmap_lanes: bool | None = None) -> list[dict]:
   """Times the train step of each (B, D) variant.
 
-  (1, 1) is train.train_step, the one-view step every B = 1 run on photos
-  of one size takes; the others are batch_step on the first D devices.
+  Each is the train step (step.py) on the first D devices.
 
   Args:
     scene_path, downscale: the scene (a folder or pack).
@@ -51,11 +50,11 @@ def views_per_second(scene_path: str, downscale: int, *,
       this many Gaussians (timing.stand_in).
     warmup: untimed steps after the compiling one.
     chunk: steps dispatched back to back in the second way.
-    vmap_lanes: how a device renders its lanes (batch_step.make_step;
-      None: batch_step.lanes_vmapped).
+    vmap_lanes: how a device renders its lanes (step.make_train_step;
+      None: step.lanes_vmapped).
   Returns:
-    One dict per variant: lanes (how its step runs: train_step, one
-    lane a device, vmap or scan); compile_s (the first step); mean wall
+    One dict per variant: lanes (how its step runs: one lane a device,
+    vmap or scan); compile_s (the first step); mean wall
     and CPU ms per step, views per second of wall time and per CPU
     second, each step waited for; the same "..._pipelined", steps back
     to back; the load average before and after.
@@ -74,18 +73,14 @@ def views_per_second(scene_path: str, downscale: int, *,
     cfg = dataclasses.replace(base, train=dataclasses.replace(
         base.train, batch_size=size))
     state = jax.tree.map(jnp.copy, state0)
-    if (size, count) == (1, 1):
-      fn, views = train.make_train_step(cfg), train.make_batch(scene.train)
-      how[name] = "train_step"
-    else:
-      mesh = sharding.make_mesh(size, jax.devices()[:count])
-      vmap = (batch_step.lanes_vmapped(mesh) if vmap_lanes is None
-              else vmap_lanes)
-      fn = batch_step.make_step(cfg, mesh, vmap)
-      views, _ = sharding.lanes_of(scene, size, mesh)
-      how[name] = ("one lane" if size == count
-                   else "vmap" if vmap else "scan")
-      state = sharding.replicate(state, mesh)
+    mesh = sharding.make_mesh(size, jax.devices()[:count])
+    vmap = (step_lib.lanes_vmapped(mesh) if vmap_lanes is None
+            else vmap_lanes)
+    fn = step_lib.make_train_step(cfg, mesh, vmap)
+    views, _ = sharding.lanes_of(scene, size, mesh)
+    how[name] = ("one lane" if size == count
+                 else "vmap" if vmap else "scan")
+    state = sharding.replicate(state, mesh)
     tic = time.perf_counter()
     state, _ = jax.block_until_ready(fn(state, views, None))
     compile_s[name] = time.perf_counter() - tic

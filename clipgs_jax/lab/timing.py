@@ -28,6 +28,7 @@ from clipgs_jax import optim
 from clipgs_jax import project
 from clipgs_jax import rasterize
 from clipgs_jax import residual
+from clipgs_jax import step as step_lib
 from clipgs_jax import train
 from clipgs_jax.data import scene as scene_lib
 
@@ -231,9 +232,10 @@ def rasterizer(n: int, width: int, height: int, variant: str, *,
   return result
 
 
-def step_stages(cfg: config_lib.Config, batch, params, alive, view: int,
+def step_stages(cfg: config_lib.Config, scene, params, alive, view: int,
                 repeats: int) -> dict:
-  """One training step on training view `view`, stage by stage.
+  """One training step on training view `view` of `scene`, stage by stage
+  (the jitted train step draws its own views).
 
   Returns:
     {stage: {compile_s, wall_ms, cpu_ms}} for project_fwd,
@@ -242,8 +244,8 @@ def step_stages(cfg: config_lib.Config, batch, params, alive, view: int,
     tile list and rasterize.blend_stats.
   """
   state = train.init_state(cfg, params, alive)
-  cam = camera.camera_at(batch.cameras, view)
-  target = batch.images[view]
+  cam = camera.camera_at(scene.train.cameras, view)
+  target = jnp.asarray(scene.train.images[view], jnp.float32)
   rcfg = cfg.render
   grid = blend.Grid(int(cam.width), int(cam.height), rcfg.tile_budget,
                     rcfg.chunk_size, rcfg.lanes, rcfg.tile_size)
@@ -298,8 +300,9 @@ def step_stages(cfg: config_lib.Config, batch, params, alive, view: int,
         timer=time_steps)
   # A copy: `state` shares its arrays with the caller's, which may time the
   # same state again (one sample per count with --checkpoint).
-  timed("train_step", train.make_train_step(cfg), copy(state), batch,
-        timer=time_steps)
+  step_fn, lanes, step_state, _ = step_lib.for_scene(cfg, scene,
+                                                     copy(state))
+  timed("train_step", step_fn, step_state, lanes, None, timer=time_steps)
   result.update(num_overflow=int(overflow), max_tile_count=int(max_count))
   result.update(rasterize.blend_stats(proj, cam, rcfg))
   return result
@@ -317,7 +320,6 @@ def train_step(scene_path: str, downscale: int, counts: list[int], *,
   """
   scene = scene_lib.load_scene(scene_path, downscale=downscale)
   cfg = train.resolve(config_lib.Config(render=render), scene)
-  batch = train.make_batch(scene.train)
   base = train.initial_state(cfg, scene)
   if checkpoint_path:
     if not os.path.exists(checkpoint_path):
@@ -328,7 +330,7 @@ def train_step(scene_path: str, downscale: int, counts: list[int], *,
       params, alive = base.params, base.alive
     else:
       params, alive = stand_in(base.params, base.alive, n)
-    result = step_stages(cfg, batch, params, alive, view, repeats)
+    result = step_stages(cfg, scene, params, alive, view, repeats)
     result.update(load_average=os.getloadavg()[0], scene=scene_path,
                   downscale=downscale, view=view,
                   source="checkpoint" if checkpoint_path else
@@ -367,7 +369,6 @@ def semantic_overhead(scene_path: str, downscale: int, *,
   if checkpoint_path:
     state0, _ = checkpoint.restore(checkpoint_path, state0)
   state0 = state0.replace(step=jnp.int32(SEMANTIC_START_STEP))
-  batch = train.make_batch(scene.train)
 
   from clipgs_jax.clip import model  # pylint: disable=g-import-not-at-top
   clip_config = model.get_config(clip_variant)
@@ -396,17 +397,17 @@ def semantic_overhead(scene_path: str, downscale: int, *,
 
   fns, states, compile_s = {}, {}, {}
   for name, (cfg, scorer) in variants.items():
-    fn = jax.jit(lambda s, b, sc, cfg=cfg: train.train_step(s, b, sc,
-                                                            cfg=cfg))
     state = jax.tree.map(jnp.copy, state0)
     if cfg.semantic.uses_residual:
       state = state.replace(maps=residual.ResidualState.initial())
+    fn, lanes, state, scorer = step_lib.for_scene(cfg, scene, state, scorer)
     tic = time.perf_counter()
-    state, _ = jax.block_until_ready(fn(state, batch, scorer))
+    state, _ = jax.block_until_ready(fn(state, lanes, scorer))
     compile_s[name] = time.perf_counter() - tic
     for _ in range(max(score_every)):
-      state, _ = fn(state, batch, scorer)
-    fns[name] = fn
+      state, _ = fn(state, lanes, scorer)
+    fns[name] = lambda s, fn=fn, lanes=lanes, scorer=scorer: fn(s, lanes,
+                                                               scorer)
     states[name] = jax.block_until_ready(state)
 
   wall = {n: [] for n in variants}
@@ -414,8 +415,7 @@ def semantic_overhead(scene_path: str, downscale: int, *,
   for _ in range(steps):
     for name, fn in fns.items():
       tic, cpu_tic = time.perf_counter(), time.process_time()
-      states[name], _ = jax.block_until_ready(
-          fn(states[name], batch, variants[name][1]))
+      states[name], _ = jax.block_until_ready(fn(states[name]))
       wall[name].append((time.perf_counter() - tic) * 1e3)
       cpu[name].append((time.process_time() - cpu_tic) * 1e3)
 

@@ -1,7 +1,9 @@
-"""The train step on a batch of views, sharded over devices.
+"""The train step: B >= 1 views, dealt into lanes over D >= 1 devices.
 
-train.batch_size = B views per step, dealt into lanes over a device mesh
-(sharding.py). Each device renders and differentiates its lanes' views
+Every run trains with this one step. train.batch_size = B views per step,
+dealt into lanes over a device mesh (sharding.py): B = 1 is a batch of
+one, one device a mesh of one, photos of one size a canvas with no
+padding. Each device renders and differentiates its lanes' views
 (view.render_and_grad; when it holds several, vmapped together on an
 accelerator and one after another, lax.scan, on a CPU: `lanes_vmapped`),
 then the step combines them as one optimisation step:
@@ -20,9 +22,11 @@ then the step combines them as one optimisation step:
   * the step counter counts batches, so every schedule (learning rates,
     densification, SH degree, the semantic schedule) counts optimisation
     steps.
-B = 1 on photos of one size does not come here: train.train_step is that
-step, unchanged. Its equality tests and measured cost: BUILD_NOTES.md,
-"Multi-device training".
+A mesh of one device runs the device's step without shard_map (no
+collectives). With B = 1 it is the one-view 3DGS step: lane 0 has the
+run's key (view.lane_key), so it visits the views in the one-view order,
+and the sums and the division by B are exact. Equality tests and
+measured cost: BUILD_NOTES.md, "Multi-device training".
 """
 
 import functools
@@ -82,11 +86,14 @@ def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
     num_devices: D, the mesh's size.
     vmap_lanes: render the device's lanes together (`lanes_vmapped`).
   Returns:
-    (state, metrics), both the same on every device: train.train_step's
-    metrics, the per-view ones averaged over the batch except the
-    per-step keys (view, scored and scores: int / float [B]).
+    (state, metrics), both the same on every device. The metrics: loss,
+    l1, ssim, psnr (means over the batch), num_overflow (summed),
+    max_tile_count, num_alive, sh_degree, means_lr, grad_norm/<field>;
+    with a scorer semantic_loss and the scorer's per-view values, with the
+    residual map residual_threshold. The per-step keys (view, scored and
+    scores: guidance.per_step_keys) stay per view: int / float [B].
   """
-  guidance.check_scorer(cfg.semantic, scorer, "batch_step.device_step")
+  guidance.check_scorer(cfg.semantic, scorer, "step.device_step")
   batch = cfg.train.batch_size
   local = batch // num_devices
   step = state.step
@@ -95,7 +102,9 @@ def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
   bg = view_lib.background(state.key, step, cfg)
   degree = sh.active_degree(step, cfg.densify.sh_degree_every,
                            cfg.gaussians.sh_degree)
-  first = jax.lax.axis_index(sharding.AXIS) * local
+  # A mesh of one device runs this without shard_map: no collectives.
+  across = num_devices > 1
+  first = jax.lax.axis_index(sharding.AXIS) * local if across else 0
 
   def one_view(i):
     lane = first + i
@@ -159,10 +168,12 @@ def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
               else None))
     sums, per_view = jax.lax.scan(body, zeros, jnp.arange(local))
   grads, dens, evidence, hist = sums
-  grads, grad_accum, denom, evidence, hist = jax.lax.psum(
-      (grads, dens.grad_accum, dens.denom, evidence, hist), sharding.AXIS)
-  max_radius = jax.lax.pmax(dens.max_radius, sharding.AXIS)
-  per_view = jax.lax.all_gather(per_view, sharding.AXIS, tiled=True)
+  grad_accum, denom, max_radius = dens.grad_accum, dens.denom, dens.max_radius
+  if across:
+    grads, grad_accum, denom, evidence, hist = jax.lax.psum(
+        (grads, grad_accum, denom, evidence, hist), sharding.AXIS)
+    max_radius = jax.lax.pmax(max_radius, sharding.AXIS)
+    per_view = jax.lax.all_gather(per_view, sharding.AXIS, tiled=True)
 
   params, opt_state, grad_norms = optim.apply(state, grads, cfg, batch)
   old = state.densify
@@ -173,7 +184,7 @@ def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
   if evidence is not None:
     semantic_stats = jax.tree.map(jnp.add, state.semantic, evidence)
   if hist is not None:
-    maps = view_lib.update_maps(maps, cfg.semantic, histogram=hist)
+    maps = view_lib.update_maps(maps, cfg.semantic, hist)
   metrics = {k: (jnp.mean(v) if k in _MEAN_KEYS else v)
              for k, v in per_view.items()}
   metrics.update(
@@ -191,12 +202,15 @@ def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
   return new_state, metrics
 
 
-def sharded_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
-                 *, cfg: config_lib.Config, mesh, vmap_lanes: bool):
-  """device_step on every device of `mesh` (shard_map): the state and
-  metrics replicated, the lanes and the scorer's per-view fields sharded."""
+def train_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
+               *, cfg: config_lib.Config, mesh, vmap_lanes: bool):
+  """The train step: device_step on every device of `mesh` (shard_map),
+  the state and metrics replicated, the lanes and the scorer's per-view
+  fields sharded; on a mesh of one device, device_step itself."""
   body = functools.partial(device_step, cfg=cfg, num_devices=mesh.size,
                            vmap_lanes=vmap_lanes)
+  if mesh.size == 1:
+    return body(state, lanes, scorer)
   # check_vma off: the rasterizer's loops carry values that would all need
   # marking as varying over the mesh; the outputs are replicated because
   # they are made from psums and the replicated state only.
@@ -209,19 +223,44 @@ def sharded_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
 
 @functools.lru_cache(maxsize=None)
 def _make(cfg: config_lib.Config, mesh, vmap_lanes: bool):
-  return jax.jit(functools.partial(sharded_step, cfg=cfg, mesh=mesh,
+  return jax.jit(functools.partial(train_step, cfg=cfg, mesh=mesh,
                                    vmap_lanes=vmap_lanes),
                  donate_argnums=(0,))
 
 
-def make_step(cfg: config_lib.Config, mesh, vmap_lanes: bool | None = None):
-  """Jitted sharded_step(state, lanes, scorer) -> (state, metrics); the
-  state is donated. Cached by the config's compiled part, the mesh and
-  `vmap_lanes` (None: `lanes_vmapped(mesh)`), as train.make_train_step."""
+def make_train_step(cfg: config_lib.Config, mesh,
+                    vmap_lanes: bool | None = None):
+  """Jitted train_step(state, lanes, scorer) -> (state, metrics); the
+  state is donated, the scorer (frozen weights or maps) is not.
+
+  Cached by the config's compiled part (config.compiled_part), the mesh
+  and `vmap_lanes` (None: `lanes_vmapped(mesh)`), so every caller whose
+  config differs only in what the step does not read (data, eval, seed,
+  cadences, the prune rule) shares one compiled step; it recompiles only
+  when the capacity changes.
+  """
   if vmap_lanes is None:
     vmap_lanes = lanes_vmapped(mesh)
   return _make(config_lib.compiled_part(
       cfg, config_lib.SEMANTIC_FIELDS_NOT_IN_STEP), mesh, vmap_lanes)
 
 
-make_step.cache_clear = _make.cache_clear
+make_train_step.cache_clear = _make.cache_clear
+
+
+def for_scene(cfg: config_lib.Config, scene, state: state_lib.TrainState,
+              scorer=None, devices=None):
+  """(jitted step, lanes, state, scorer) that train a scene: the training
+  views dealt into lanes over the mesh of `devices` (sharding.make_mesh;
+  default every device, one for B = 1), the state replicated and the
+  scorer's per-view fields dealt like the views. Then
+
+    state, metrics = step(state, lanes, scorer)
+
+  is one optimisation step.
+  """
+  mesh = sharding.make_mesh(cfg.train.batch_size, devices)
+  lanes, rows = sharding.lanes_of(scene, cfg.train.batch_size, mesh)
+  height, width = lanes.images.shape[2:4]
+  return (make_train_step(cfg, mesh), lanes, sharding.replicate(state, mesh),
+          sharding.scorer_lanes(scorer, rows, height, width, mesh))
