@@ -148,7 +148,7 @@ def check_resumable(path: str, cfg: config_lib.Config) -> None:
   writes anything.
   """
   meta = read_meta(path)
-  saved = json.loads(json.dumps(meta["config"]))
+  saved = json.loads(json.dumps(config_lib.migrate(meta["config"])))
   wanted = json.loads(json.dumps(config_lib.to_dict(cfg)))
   if saved != wanted:
     diff = config_differences(saved, wanted)

@@ -13,6 +13,8 @@ from absl import app
 from absl import flags
 from ml_collections import config_flags
 
+from clipgs_jax import config as config_lib
+
 # Exit status of a run stopped by bad input (a file, a value, the disk).
 EXIT_ERROR = 1
 # Exit status of a command line that could not be parsed or made no sense
@@ -204,8 +206,16 @@ def define_config_file(name: str, default: str, help_text: str):
 
   ml_collections reads the --NAME.FIELD=VALUE overrides while the flag is
   defined (at import), so an unknown field fails there: it exits with
-  EXIT_USAGE and one line naming the field, like any other flag error.
+  EXIT_USAGE and one line naming the field, like any other flag error (a
+  field that moved, config.RENAMED, with its new name).
   """
+  prefix = f"--{name}."
+  for arg in sys.argv[1:]:
+    key = arg[len(prefix):].split("=", 1)[0] if arg.startswith(prefix) else ""
+    if key in config_lib.RENAMED:
+      report(app.UsageError(f"{prefix}{key} is now {prefix}"
+                            f"{config_lib.RENAMED[key]}; use the new name"),
+             EXIT_USAGE)
   try:
     return config_flags.DEFINE_config_file(name, default, help_text,
                                            lock_config=True)

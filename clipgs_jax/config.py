@@ -1,11 +1,19 @@
-"""Frozen configuration dataclasses with the paper's and 3DGS's defaults,
-and the compiled part of a config that keys the jit caches.
+"""A run's settings: frozen dataclasses with the paper's and 3DGS's
+defaults, one section for each stage that reads it, each with the checks of
+its fields (`check`).
 
-Config files become a checked Config in config_file.py (`check`).
+Config files and command lines become a Config in config_file.py, which
+calls `check` before any scene or weights are read; compiled.py says which
+fields compiled code reads.
 """
 
 import dataclasses
-import functools
+
+from absl import app
+
+from clipgs_jax import features
+from clipgs_jax import metrics
+from clipgs_jax import residual
 
 
 @dataclasses.dataclass(frozen=True)
@@ -26,11 +34,15 @@ class RenderConfig:
   tile_budget: int = 2048      # K: buffer entries per tile, on average
   chunk_size: int = 32         # B: list entries blended per round per lane
   lanes: int = 0               # tiles blended side by side; 0 = tiles / 6
-  # 8x8 tiles: a splat covers a larger share of a smaller tile, so the blend
-  # evaluates fewer zero-alpha pixels. Bird ds4: 0.44 s/step over a 7k-step
-  # run; its final state steps in 500-600 ms against 880-1,030 at 16x16
-  # (BUILD_NOTES.md, "Rasterizer").
+  # 8x8: a splat covers more of a smaller tile, so the blend evaluates fewer
+  # zero-alpha pixels (bird ds4: 1.7x faster than 16x16; BUILD_NOTES.md).
   tile_size: int = 8           # tile side in pixels
+
+  def problems(self) -> list[str]:
+    if self.tile_budget <= 0:
+      return [f"tile_budget={self.tile_budget} must be positive; raise it "
+              "when the log warns that tile-list entries were dropped"]
+    return []
 
 
 @dataclasses.dataclass(frozen=True)
@@ -93,6 +105,18 @@ class TrainConfig:
   eval_every: int = 1000       # test PSNR for the curve; 0 = only at the end
   checkpoint_every: int = 5000  # 0 = only at the end
 
+  def problems(self) -> list[str]:
+    out = []
+    if self.steps <= 0:
+      out.append(f"steps={self.steps} must be positive")
+    if self.batch_size < 1:
+      out.append(f"batch_size={self.batch_size} must be positive (1: one "
+                 "view per step)")
+    if self.checkpoint_every < 0:
+      out.append(f"checkpoint_every={self.checkpoint_every} must be >= 0 "
+                 "(0: only at the end)")
+    return out
+
 
 # The paper's prompt sets: distractors D and static scene S (eqs. 5-7).
 PAPER_DISTRACTOR_PROMPTS = ("a photo of a person", "a photo of people",
@@ -100,7 +124,7 @@ PAPER_DISTRACTOR_PROMPTS = ("a photo of a person", "a photo of people",
                             "a photo of a balloon")
 PAPER_STATIC_PROMPTS = ("a photo of a building", "a photo of a wall",
                         "a photo of furniture")
-# The paper's run length; `SemanticConfig.scaled_to` scales its schedule.
+# The paper's run length; `scaled_to` scales the schedules from it.
 PAPER_STEPS = 20_000
 # "uniform" is a control for localized evidence (benchmarks only): every
 # pixel of every training view gets the ground-truth masks' mean transient
@@ -116,18 +140,26 @@ WEIGHTINGS = ("visibility", "contribution")
 EVIDENCES = ("image", "pixel")
 
 
+def _scale(x: int, f: float) -> int:
+  return max(1, round(x * f))
+
+
 @dataclasses.dataclass(frozen=True)
 class SemanticConfig:
-  """The CLIP-GS semantic stage (paper defaults, eqs. 5-13).
+  """The CLIP-GS stage (paper defaults, eqs. 5-13): which scorer, how its
+  evidence accumulates, the opacity loss and eq. 13's prune.
 
   Steps count finished steps, as in DensifyConfig. The step that starts at
   `step` scores its view when step >= accumulate_start and
   (step - accumulate_start) % score_every == 0, adds the opacity loss when
   step >= reg_start, and after `step` finished steps the host loop prunes
   when step >= prune_start and (step - prune_start) % prune_every == 0.
+  Per-pixel evidence reads PixelConfig too, the residual map
+  ResidualConfig.
   """
-  scorer: str = "off"          # off | clip | oracle | uniform (oracle,
-  #   uniform: benchmarks only, read the ground-truth masks)
+  scorer: str = "off"          # off | clip | oracle | uniform | residual |
+  #   oracle_patch (oracle, uniform, oracle_patch: benchmarks only, they
+  #   read the ground-truth masks)
   evidence: str = "image"      # image (the paper) | pixel (localized maps)
   distractor_prompts: tuple[str, ...] = PAPER_DISTRACTOR_PROMPTS  # D
   static_prompts: tuple[str, ...] = PAPER_STATIC_PROMPTS  # S, logged only
@@ -135,16 +167,10 @@ class SemanticConfig:
   lambda_c: float = 0.01       # CLIP opacity loss weight (eq. 11; 0: off)
   prune: bool = True           # eq. 13 pruning (False: an ablation)
   tau: float = 0.015           # prune when s_j > tau (eq. 13), image evidence
-  tau_p: float = 0.5           # pixel evidence: prune when the probability
-  #   s_j that a Gaussian's light is transient exceeds this (every scene)
   n_min: float = 10.0          # ... or n_j < n_min and alpha_j < alpha_min;
   alpha_min: float = 0.1       #     n_min is divided by score_every
   rare_needs_evidence: bool = False  # the n_min clause prunes only rows
-  #   with s_j > 0: some of their light fell on pixels the map calls
-  #   transient (False: the paper). Pixel evidence scores every view, and
-  #   rows a densification just made, or that few views see, sit under
-  #   n_min: on bonsai they are mostly scene; not yet the default
-  #   (BUILD_NOTES.md, "Tried, reverted")
+  #   with s_j > 0 (False: the paper; BUILD_NOTES.md, "Tried, reverted")
   accumulate_start: int = 500  # first scored step
   reg_start: int = 2000        # first step with the opacity loss
   prune_start: int = 5000      # first prune after this many steps
@@ -154,13 +180,9 @@ class SemanticConfig:
   #   score once; "contribution": weighted by its blending-weight sum in the
   #   view (n_j still counts views; see semantic.accumulate)
   clip_variant: str = "ViT-B/32"  # frozen tower; 224x224 resized input
+  dense_input_size: int = 448  # clip + pixel: CLIP input side, a multiple
+  #   of the patch size (B/32: a 14x14 patch grid)
   oracle_saturation: float = 0.1  # transient area fraction that scores 1.0
-  agreement: bool = True       # pixel evidence: a transient pixel counts
-  #   as far as the render reproduces the photo (semantic.agreement; a
-  #   second forward pass on scored steps), the rest of it not at all;
-  #   False: the raw map, in the render's own pass
-  loss_masking: bool = False   # pixel evidence: weight the photometric loss
-  #   per pixel by 1 - m (robust-3DGS style); off in the paper
   reset_quiet: int = 0         # steps after each opacity reset without
   #   the opacity loss or eq. 13 prune (0: the paper). Adam's opacity
   #   moments are zeroed at a reset, so until a row's photometric gradient
@@ -171,74 +193,15 @@ class SemanticConfig:
   #   when this share of its blending weight over the training views falls
   #   on pixels that removing the clause's rows makes worse (two renders of
   #   the training views that see them, each prune event;
-  #   render_without.py). 0: off; it spares part of bonsai's window, not
-  #   all (BUILD_NOTES.md, "Which rows eq. 13 takes")
+  #   render_without.py). 0: off (BUILD_NOTES.md, "Which rows eq. 13 takes")
   max_prune_fraction: float = 0.5  # a prune event that would remove more
   #   of the alive Gaussians than this removes none (1.0: the paper, no guard)
-  dense_input_size: int = 448  # clip + pixel: CLIP input side, a multiple
-  #   of the patch size (B/32: a 14x14 patch grid)
-  # The residual map (scorer "residual"; clipgs_jax/residual.py): a pixel
-  # is transient where the step's own render misses the photo by more than
-  # a running quantile of the residuals.
-  residual: bool = False       # pixel evidence with a semantic map (clip,
-  #   oracle_patch): keep the residual test only where the semantic map's
-  #   p(transient) > 0.5 (implied by scorer "residual", which has none)
-  residual_rule: str = "sls"   # sls (SpotLessSplats) | robustnerf
-  residual_quantile: float = 0.7  # inlier share (SLS 0.7; RobustNeRF 0.8)
-  residual_decay: float = 0.95  # histogram decay per step (RobustNeRF: 0)
-  residual_warmup: float = 3e-3  # rate of the Bernoulli warm-up per step
-  #   of a 20k-step run (SLS's 3e-3); scaled_to divides it by the run's
-  #   share of 20k, so the warm-up ends at the same share of any run
-  #   (0.024 at 2,500 steps); 0: none
-  residual_start: int = 0      # the training step uses no residual map
-  #   (no pixel masked, no evidence) before this step, scaled like
-  #   accumulate_start. Masking what the smeared early render misses keeps
-  #   static scene unfit (bonsai), and starting late lets transients be
-  #   fit (bird independent): BUILD_NOTES.md, "Transient masks without an
-  #   oracle". Mask quality reports the test's map at every step
-  residual_median_factor: float = 3.0  # threshold >= this x the median
-  #   residual (0: the quantile alone; BUILD_NOTES.md, "Transient masks
-  #   without an oracle": a quantile masks its share of a clean view too)
-  residual_min_threshold: float = 0.15  # threshold >= this mean absolute
-  #   colour error (0: none). Relative floors stay at the fit's own error
-  #   level, so a clean view stays masked where the fit lags; an absolute
-  #   one lets a clean view's map shrink as the fit improves (BUILD_NOTES)
-  residual_min_alpha: float = 0.9  # a pixel is transient only where the
-  #   render's alpha exceeds this (0: everywhere; with features: only in a
-  #   region where most pixels' alpha does). A transient hides a
-  #   surface other views reconstruct; where the model has none, a high
-  #   residual is static scene not yet fit, and masking it keeps it unfit
-  #   (BUILD_NOTES.md, "Transient masks without an oracle")
-  residual_min_share: float = 0.03  # a view whose map, after the gates,
-  #   marks less than this share of its pixels is taken as clean: no
-  #   transient pixel, every pixel in the loss (0: off). A fit error
-  #   marks a few regions of a view (bonsai's clean twin: up to 2.1 %),
-  #   a transient the benchmarks paste 5-42 % of one; a smaller one goes
-  #   unmasked (BUILD_NOTES.md, "The share floor")
-  features: str = ""           # residual map: "" per pixel, or "alex" /
-  #   "vgg": each photo's ImageNet-feature regions (features.py) take the
-  #   majority verdict of the residual test inside them
-  residual_vote: float = 0.5   # features: a region is transient when at
-  #   least this share of its pixels fail the residual test (SLS-agg: 0.5)
-  residual_uniformity: float = 0.35  # features: before
-  #   residual_uniform_until, a region the vote calls transient is masked
-  #   only where the residual's std / mean over its pixels is below this
-  #   (0: no such gate). The early, smeared render misses static regions
-  #   at their edges and a transient throughout (BUILD_NOTES.md,
-  #   "Transient masks without an oracle")
-  residual_uniform_until: int = 10_000  # paper steps, scaled like
-  #   residual_start (1,250 of 2,500)
 
   @property
   def enabled(self) -> bool:
-    """Guidance runs: a scorer is chosen (config_file.check rejects a CLIP
-    scorer without distractor prompts instead of running vanilla)."""
+    """Guidance runs: a scorer is chosen (a CLIP scorer without distractor
+    prompts is refused, not run as vanilla)."""
     return self.scorer != "off"
-
-  @property
-  def uses_residual(self) -> bool:
-    """The step computes the residual map (and carries its statistics)."""
-    return self.enabled and (self.scorer == "residual" or self.residual)
 
   @property
   def localized(self) -> bool:
@@ -248,15 +211,158 @@ class SemanticConfig:
   def scaled_to(self, steps: int) -> "SemanticConfig":
     """The schedule scaled from the paper's 20k steps to `steps`."""
     f = steps / PAPER_STEPS
-    scale = lambda x: max(1, round(x * f))
     return dataclasses.replace(
-        self, accumulate_start=scale(self.accumulate_start),
-        reg_start=scale(self.reg_start), prune_start=scale(self.prune_start),
-        residual_start=(scale(self.residual_start) if self.residual_start
-                        else 0),
-        residual_uniform_until=scale(self.residual_uniform_until),
-        prune_every=scale(self.prune_every),
-        residual_warmup=self.residual_warmup / f)
+        self, accumulate_start=_scale(self.accumulate_start, f),
+        reg_start=_scale(self.reg_start, f),
+        prune_start=_scale(self.prune_start, f),
+        prune_every=_scale(self.prune_every, f))
+
+  def problems(self) -> list[str]:
+    """What keeps these settings from running, one phrase per field."""
+    out = []
+    if self.scorer not in SCORERS:
+      out.append(f"scorer={self.scorer!r} is not one of {', '.join(SCORERS)}")
+    if self.evidence not in EVIDENCES:
+      out.append(f"evidence={self.evidence!r} is not one of "
+                 f"{', '.join(EVIDENCES)}")
+    if self.scorer == "clip" and not self.distractor_prompts:
+      out.append("scorer='clip' has no distractor prompts; give some (e.g. "
+                 "the paper's) or use scorer='off' for vanilla 3DGS")
+    if (self.scorer == "clip" and self.evidence == "pixel"
+        and not self.static_prompts):
+      out.append("scorer='clip' with evidence='pixel' needs static prompts: "
+                 "p(distractor) is a softmax over D and S, which is "
+                 "identically 1 without S")
+    if (self.scorer in ("uniform", "residual", "oracle_patch")
+        and self.evidence != "pixel"):
+      out.append(f"scorer={self.scorer!r} is a per-pixel map; it needs "
+                 "evidence='pixel'")
+    if self.weighting not in WEIGHTINGS:
+      out.append(f"weighting={self.weighting!r} is not one of "
+                 f"{', '.join(WEIGHTINGS)}")
+    for name, lo, hi in (("tau", 0.0, 1.0), ("prune_harm", 0.0, 1.0)):
+      if not lo <= getattr(self, name) <= hi:
+        out.append(f"{name}={getattr(self, name)} is not in [{lo:g}, "
+                   f"{hi:g}]")
+    if not 0.0 < self.max_prune_fraction <= 1.0:
+      out.append(f"max_prune_fraction={self.max_prune_fraction} is not in "
+                 "(0, 1] (1.0 lifts the guard)")
+    if not 0.0 < self.oracle_saturation <= 1.0:
+      out.append(f"oracle_saturation={self.oracle_saturation} is not in "
+                 "(0, 1]")
+    if self.dense_input_size <= 0:
+      out.append(f"dense_input_size={self.dense_input_size} must be a "
+                 "positive multiple of the ViT's patch size")
+    if not self.beta > 0:
+      out.append(f"beta={self.beta} must be positive")
+    if not self.lambda_c >= 0:
+      out.append(f"lambda_c={self.lambda_c} must be >= 0")
+    for name in ("accumulate_start", "reg_start", "prune_start",
+                 "reset_quiet"):
+      if getattr(self, name) < 0:
+        out.append(f"{name}={getattr(self, name)} must be >= 0")
+    for name in ("prune_every", "score_every"):
+      if getattr(self, name) < 1:
+        out.append(f"{name}={getattr(self, name)} must be >= 1")
+    if any(not p.strip()
+           for p in self.distractor_prompts + self.static_prompts):
+      out.append("a prompt is empty")
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class PixelConfig:
+  """Per-pixel evidence (semantic.evidence = "pixel"): how a view's map m
+  reaches the Gaussians, the loss and eq. 13."""
+  tau_p: float = 0.5           # prune when the probability s_j that a
+  #   Gaussian's light is transient exceeds this (every scene)
+  agreement: bool = True       # a transient pixel counts as far as the
+  #   render reproduces the photo (semantic.agreement; a second forward
+  #   pass on scored steps), the rest of it not at all; False: the raw map
+  #   in the render's own pass
+  loss_masking: bool = False   # weight the photometric loss per pixel by
+  #   1 - m (robust-3DGS style); off in the paper
+
+  def problems(self) -> list[str]:
+    if not 0.0 <= self.tau_p <= 1.0:
+      return [f"tau_p={self.tau_p} is not in [0, 1]"]
+    return []
+
+
+@dataclasses.dataclass(frozen=True)
+class ResidualConfig:
+  """The residual map (semantic.scorer "residual", or a semantic map with
+  with_semantic; clipgs_jax/residual.py, map_sources.py): a pixel is
+  transient where the step's own render misses the photo by more than a
+  running quantile of the residuals, then through the gates below, each
+  reported per stage by `report.py --report=loss_maps` (BUILD_NOTES.md,
+  "Transient masks without an oracle").
+  """
+  with_semantic: bool = False  # keep the residual test only where the
+  #   semantic map (scorer clip or oracle_patch) says p(transient) > 0.5
+  rule: str = "sls"            # sls (SpotLessSplats) | robustnerf
+  quantile: float = 0.7        # inlier share (SLS 0.7; RobustNeRF 0.8)
+  decay: float = 0.95          # histogram decay per step (RobustNeRF: 0)
+  median_factor: float = 3.0   # threshold >= this x the median residual
+  #   (0: the quantile alone, which masks its share of a clean view too)
+  min_threshold: float = 0.15  # threshold >= this mean absolute colour
+  #   error (0: none), so a clean view's map shrinks as the fit improves
+  warmup: float = 3e-3         # rate of the Bernoulli warm-up per step of
+  #   a 20k-step run (SLS's 3e-3); scaled_to divides it by the run's share
+  #   of 20k (0.024 at 2,500 steps); 0: none
+  start: int = 0               # no pixel masked, no evidence before this
+  #   step (scaled like accumulate_start); 0: from the first scored step
+  features: str = ""           # "" per pixel, or "alex" / "vgg": each
+  #   photo's ImageNet-feature regions (features.py) take the majority
+  #   verdict of the residual test inside them
+  vote: float = 0.5            # features: a region is transient when at
+  #   least this share of its pixels fail the test (SLS-agg: 0.5)
+  uniformity: float = 0.35     # features: before uniform_until, a region
+  #   the vote calls transient is masked only where the residual's
+  #   std / mean over its pixels is below this (0: no such gate)
+  uniform_until: int = 10_000  # paper steps, scaled (1,250 of 2,500)
+  min_alpha: float = 0.9       # transient only where the render's alpha
+  #   exceeds this (with features: in a region where most pixels' alpha
+  #   does); 0: everywhere. Where the model has no surface a high residual
+  #   is static scene not yet fit
+  min_share: float = 0.03      # a view whose map, after the gates, marks
+  #   less than this share of its pixels is clean: no transient pixel
+  #   (0: off; bonsai's clean twin's fit errors mark up to 2.1 %)
+
+  def scaled_to(self, steps: int) -> "ResidualConfig":
+    """The schedule scaled from the paper's 20k steps to `steps`."""
+    f = steps / PAPER_STEPS
+    return dataclasses.replace(
+        self, start=_scale(self.start, f) if self.start else 0,
+        uniform_until=_scale(self.uniform_until, f),
+        warmup=self.warmup / f)
+
+  def problems(self) -> list[str]:
+    out = []
+    if self.rule not in residual.RULES:
+      out.append(f"rule={self.rule!r} is not one of "
+                 f"{', '.join(residual.RULES)}")
+    if self.features and self.features not in features.NETS:
+      out.append(f"features={self.features!r} is not one of "
+                 f"{', '.join(sorted(features.NETS))} (or '' for none)")
+    for name, ok, interval in (
+        ("quantile", 0.0 < self.quantile < 1.0, "(0, 1)"),
+        ("decay", 0.0 <= self.decay < 1.0, "[0, 1)"),
+        ("min_threshold", 0.0 <= self.min_threshold < 1.0, "[0, 1)"),
+        ("min_alpha", 0.0 <= self.min_alpha < 1.0, "[0, 1)"),
+        ("min_share", 0.0 <= self.min_share < 1.0, "[0, 1)"),
+        ("vote", 0.0 < self.vote <= 1.0, "(0, 1]")):
+      if not ok:
+        out.append(f"{name}={getattr(self, name)} is not in {interval}")
+    for name in ("median_factor", "warmup", "uniformity", "start",
+                 "uniform_until"):
+      if not getattr(self, name) >= 0:
+        out.append(f"{name}={getattr(self, name)} must be >= 0")
+    return out
+
+
+# RobustNeRF's training splits: the views with clutter, or their clean twins.
+TRAIN_SPLITS = ("clutter", "clean")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -266,6 +372,16 @@ class DataConfig:
   downscale: int = 1           # image downscale factor (1: full size)
   train_split: str = "clutter"  # RobustNeRF: clutter views or clean twins
 
+  def problems(self) -> list[str]:
+    out = []
+    if self.downscale < 1:
+      out.append(f"downscale={self.downscale} must be a positive integer "
+                 "(1: full size)")
+    if self.train_split not in TRAIN_SPLITS:
+      out.append(f"train_split={self.train_split} is not one of "
+                 f"{', '.join(TRAIN_SPLITS)}")
+    return out
+
 
 @dataclasses.dataclass(frozen=True)
 class EvalConfig:
@@ -273,6 +389,16 @@ class EvalConfig:
   lpips_net: str = "alex"      # LPIPS backbone of the test metrics
   curve_points: int = 20       # test-PSNR points along the run (curve.json);
   #   sets train.eval_every = steps // curve_points (0: keep eval_every)
+
+  def problems(self) -> list[str]:
+    out = []
+    if self.lpips_net not in metrics.LPIPS_NETS:
+      out.append(f"lpips_net={self.lpips_net} is not one of "
+                 f"{', '.join(metrics.LPIPS_NETS)}")
+    if self.curve_points < 0:
+      out.append(f"curve_points={self.curve_points} must be >= 0 (0: keep "
+                 "train.eval_every)")
+    return out
 
 
 @dataclasses.dataclass(frozen=True)
@@ -284,76 +410,90 @@ class Config:
   train: TrainConfig = TrainConfig()      # loop, loss, logging
   render: RenderConfig = RenderConfig()   # rasterizer settings
   semantic: SemanticConfig = SemanticConfig()  # CLIP-GS guidance (off)
+  pixel: PixelConfig = PixelConfig()      # per-pixel evidence
+  residual: ResidualConfig = ResidualConfig()  # the residual map
   data: DataConfig = DataConfig()         # scene, downscale, split
   eval: EvalConfig = EvalConfig()         # test metrics, curve
   scene_extent: float = 0.0    # camera-centre radius x 1.1; 0 = from scene
 
+  @property
+  def uses_residual(self) -> bool:
+    """The step computes the residual map (and carries its statistics)."""
+    sem = self.semantic
+    return sem.enabled and (sem.scorer == "residual"
+                            or self.residual.with_semantic)
 
-class _HostOnly:
-  """Stands in for a config field that compiled code must not read.
+  def scaled_to(self, steps: int) -> "Config":
+    """The semantic and residual schedules scaled from the paper's 20k
+    steps to `steps` (the config key semantic.scale_schedule)."""
+    return dataclasses.replace(self, semantic=self.semantic.scaled_to(steps),
+                               residual=self.residual.scaled_to(steps))
 
-  Arithmetic, attribute access and truth tests on it raise, so a traced
-  function that starts reading such a field fails at trace time instead of
-  silently using one run's value for all the runs that share its program.
-  """
-
-  def __bool__(self):
-    raise TypeError("a host-only config field was read by compiled code; "
-                    "remove it from config.compiled_part's dropped fields")
-
-  def __repr__(self):
-    return "HOST_ONLY"
-
-
-HOST_ONLY = _HostOnly()
-# Fields that only the host loop reads: when to log, evaluate and checkpoint,
-# the seed (it makes the initial PRNG key, which the state carries), the
-# scene and split, and the test metrics.
-_HOST_TRAIN_FIELDS = ("seed", "log_every", "eval_every", "checkpoint_every")
-# SemanticConfig fields that the train step does not read: the prune rule
-# (its own jitted function, guidance.prune), and what builds the scorer
-# (guidance.make_scorer), which the step gets as an argument.
-SEMANTIC_FIELDS_NOT_IN_STEP = (
-    "prune", "tau", "tau_p", "n_min", "alpha_min", "rare_needs_evidence",
-    "prune_harm",
-    "prune_start", "prune_every", "max_prune_fraction", "static_prompts",
-    "clip_variant", "dense_input_size", "oracle_saturation")
-
-
-def compiled_part(cfg: Config, semantic_dropped: tuple[str, ...] = ()
-                  ) -> Config:
-  """`cfg` with the fields its compiled functions do not read as HOST_ONLY.
-
-  Dropped: data, eval, the host fields of train, and the `semantic_dropped`
-  fields of semantic. The jitted step, densify and prune functions are
-  cached by this (`cache_by_compiled_part`), so runs that differ only there
-  (a table's vanilla and clean rows; two runs that differ in tau) share one
-  compiled program instead of compiling the same program again.
-  """
-  return dataclasses.replace(
-      cfg, data=HOST_ONLY, eval=HOST_ONLY,
-      train=dataclasses.replace(
-          cfg.train, **dict.fromkeys(_HOST_TRAIN_FIELDS, HOST_ONLY)),
-      semantic=dataclasses.replace(
-          cfg.semantic, **dict.fromkeys(semantic_dropped, HOST_ONLY)))
+  def problems(self) -> list[str]:
+    """Every value that keeps this config from running, each as
+    '--config.SECTION.FIELD=VALUE <fix>'."""
+    out = []
+    for f in dataclasses.fields(self):
+      section = getattr(self, f.name)
+      for p in (section.problems() if hasattr(section, "problems") else ()):
+        field = p.split("=", 1)[0]
+        out.append(f"--config.{f.name}." + p if field.isidentifier()
+                   else f"--config.{f.name}: {p}")
+    sem, pixel, rc = self.semantic, self.pixel, self.residual
+    if pixel.loss_masking and sem.evidence != "pixel":
+      out.append("--config.pixel.loss_masking=True needs "
+                 "--config.semantic.evidence=pixel (a per-pixel map)")
+    if rc.with_semantic and (sem.scorer not in ("clip", "oracle_patch")
+                             or sem.evidence != "pixel"):
+      out.append("--config.residual.with_semantic=True gates the residual "
+                 "map by a semantic map: it needs --config.semantic.scorer="
+                 "clip or oracle_patch and evidence=pixel (scorer=residual "
+                 "is the residual map alone)")
+    if rc.features and not self.uses_residual:
+      out.append(f"--config.residual.features={rc.features} votes the "
+                 "residual test over regions: it needs --config.semantic."
+                 "scorer=residual or --config.residual.with_semantic=True")
+    if (sem.enabled and sem.lambda_c == 0 and not sem.prune
+        and not pixel.loss_masking):
+      out.append("--config.semantic.lambda_c=0 with prune and loss_masking "
+                 "off leaves guidance nothing to do; use scorer=off for "
+                 "vanilla 3DGS")
+    return out
 
 
-def cache_by_compiled_part(semantic_dropped: tuple[str, ...] = ()):
-  """Decorator factory: caches `make(cfg)` by `compiled_part(cfg, ...)`.
+def check(cfg: Config) -> Config:
+  """`cfg` if every value can run, else app.UsageError naming each bad
+  field as --config.SECTION.FIELD and its fix, in one line."""
+  problems = cfg.problems()
+  if problems:
+    raise app.UsageError("; ".join(problems) + ".")
+  return cfg
 
-  `make` receives the compiled part; `.cache_clear()` works as for
-  functools.lru_cache.
-  """
-  def decorate(make):
-    cached = functools.lru_cache(maxsize=None)(make)
 
-    @functools.wraps(make)
-    def wrapper(cfg: Config):
-      return cached(compiled_part(cfg, semantic_dropped))
+# Fields that moved to sections of their own, by their old dotted name (runs
+# and command lines before 2026-12-07).
+RENAMED = {
+    **{f"semantic.{k}": f"pixel.{k}"
+       for k in ("tau_p", "agreement", "loss_masking")},
+    "semantic.residual": "residual.with_semantic",
+    "semantic.features": "residual.features",
+    **{f"semantic.residual_{k}": f"residual.{k}"
+       for k in ("rule", "quantile", "decay", "median_factor",
+                 "min_threshold", "warmup", "start", "vote", "uniformity",
+                 "uniform_until", "min_alpha", "min_share")},
+}
 
-    wrapper.cache_clear = cached.cache_clear
-    return wrapper
-  return decorate
+
+def migrate(values: dict) -> dict:
+  """A config dict (config.json, a checkpoint's meta/config) with the
+  RENAMED fields under their current names."""
+  out = {k: dict(v) if isinstance(v, dict) else v for k, v in values.items()}
+  for old, new in RENAMED.items():
+    section, name = old.split(".")
+    if name in out.get(section, {}):
+      to, field = new.split(".")
+      out.setdefault(to, {})[field] = out[section].pop(name)
+  return out
 
 
 def to_dict(cfg: Config) -> dict:

@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from clipgs_jax import compiled
 from clipgs_jax import config as config_lib
 from clipgs_jax import gaussians
 from clipgs_jax import optim
@@ -210,20 +211,20 @@ def since_reset_within(step, window: int, cfg: config_lib.Config):
   return _control_active(last, cfg) & (step - last < window)
 
 
-@config_lib.cache_by_compiled_part()
+@compiled.cache_by_compiled_part()
 def make_densify(cfg: config_lib.Config):
   """Jitted densify(state, key) -> (state, info); the state is donated."""
   return jax.jit(functools.partial(densify, cfg=cfg), donate_argnums=(0,))
 
 
-@config_lib.cache_by_compiled_part()
+@compiled.cache_by_compiled_part()
 def make_reset_opacity(cfg: config_lib.Config):
   """Jitted reset_opacity(state) -> state; the state is donated."""
   return jax.jit(functools.partial(reset_opacity, cfg=cfg),
                  donate_argnums=(0,))
 
 
-@config_lib.cache_by_compiled_part()
+@compiled.cache_by_compiled_part()
 def make_count_requests(cfg: config_lib.Config):
   """Jitted count_requests(state) -> (requests, free slots)."""
   return jax.jit(functools.partial(count_requests, cfg=cfg))

@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from clipgs_jax import camera as camera_lib
+from clipgs_jax import compiled
 from clipgs_jax import config as config_lib
 from clipgs_jax import gaussians
 from clipgs_jax import metrics as metrics_lib
@@ -201,7 +202,7 @@ def _view_map_fn(cfg: config_lib.Config, stages: bool = False):
     bg = jnp.asarray(cfg.train.background, jnp.float32)
     out = rasterize.render(params, alive, cam, bg, cfg.render, degree)
     return map_fn(scorer, stats, view, out.image, out.alpha, photo,
-                  cfg.semantic, valid)
+                  cfg.residual, valid)
   return jax.jit(fn)
 
 
@@ -221,7 +222,7 @@ def view_map(params: gaussians.GaussianParams, alive, stats, scorer, views,
   if getattr(views, "sizes", None) is not None:
     valid = sharding.valid_mask(jnp.asarray(views.sizes[index]),
                                 photo.shape[0], photo.shape[1])
-  out = _view_map_fn(config_lib.compiled_part(cfg), stages)(
+  out = _view_map_fn(compiled.compiled_part(cfg), stages)(
       params, alive, stats, scorer, jnp.int32(index), cam, photo, degree,
       valid)
   return jax.tree.map(np.asarray, out)

@@ -36,6 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from clipgs_jax import compiled
 from clipgs_jax import config as config_lib
 from clipgs_jax import densify
 from clipgs_jax import map_sources
@@ -117,23 +118,25 @@ class OracleScorer:
             "s_hat_s": jnp.float32(jnp.nan)}
 
 
-def make_scorer(sem: config_lib.SemanticConfig, scene, *,
+def make_scorer(cfg: config_lib.Config, scene, *,
                 clip_weights: str | None = None,
                 clip_params: tuple[Any, dict] | None = None):
-  """The scorer `sem` asks for, or None when guidance is off.
+  """The scorer `cfg.semantic` asks for, or None when guidance is off.
 
   Args:
-    sem: the checked semantic config (config_file.check); `sem.enabled` False
-      (scorer "off") returns None and imports nothing.
+    cfg: the checked config (config_file.check): its semantic section and,
+      for the residual map, its residual section. Guidance off (scorer
+      "off") returns None and imports nothing.
     scene: a data.scene.Scene; the oracle reads `scene.train.masks`.
     clip_weights: the --clip_weights flag (else $CLIPGS_CLIP_WEIGHTS).
     clip_params: (ClipConfig, params) to use instead of a weights file
       (benchmarks with random weights, tests).
   """
+  sem = cfg.semantic
   if not sem.enabled:
     return None
   if sem.scorer == "residual":
-    return _residual_source(None, sem, scene)
+    return _residual_source(None, cfg.residual, scene)
   if sem.scorer in ("oracle", "uniform", "oracle_patch"):
     masks = scene.train.masks
     if masks is None:
@@ -151,7 +154,7 @@ def make_scorer(sem: config_lib.SemanticConfig, scene, *,
               else jnp.asarray(per_photo(
                   lambda m: map_sources.oracle_patch_maps(m[None], grid)[0],
                   masks, sizes)))
-      return _pixel_source(maps, sem, scene)
+      return _pixel_source(maps, cfg.residual, scene)
     if sem.localized:
       return PixelMapScorer(maps=jnp.asarray(masks, jnp.float32))
     return OracleScorer(
@@ -166,26 +169,26 @@ def make_scorer(sem: config_lib.SemanticConfig, scene, *,
                                    input_size=sem.dense_input_size)
     return _pixel_source(
         dense_maps(dense, scene.train.images,
-                   getattr(scene.train, "sizes", None)), sem, scene)
+                   getattr(scene.train, "sizes", None)), cfg.residual, scene)
   return clip_scorer.make(sem, weights_path=clip_weights,
                           clip_params=clip_params)
 
 
-def _pixel_source(maps: jax.Array, sem: config_lib.SemanticConfig, scene):
+def _pixel_source(maps: jax.Array, rc: config_lib.ResidualConfig, scene):
   """A semantic map per view: as it is, or gating the residual map."""
-  if sem.residual:
-    return _residual_source(maps, sem, scene)
+  if rc.with_semantic:
+    return _residual_source(maps, rc, scene)
   return PixelMapScorer(maps=maps)
 
 
-def _residual_source(maps, sem: config_lib.SemanticConfig, scene
+def _residual_source(maps, rc: config_lib.ResidualConfig, scene
                      ) -> map_sources.ResidualSource:
   """The residual map's scorer, with the photos' feature regions when
-  sem.features names a backbone."""
-  if not sem.features:
+  rc.features names a backbone."""
+  if not rc.features:
     return map_sources.ResidualSource(semantic=maps)
   labels, num = map_sources.feature_regions(
-      scene.train.images, sem.features, getattr(scene.train, "sizes", None))
+      scene.train.images, rc.features, getattr(scene.train, "sizes", None))
   return map_sources.ResidualSource(semantic=maps, labels=labels,
                                     num_regions=num)
 
@@ -253,7 +256,7 @@ def check_scorer(sem: config_lib.SemanticConfig, scorer, caller: str
         f"{caller}: semantic scorer {sem.scorer!r} with "
         f"{len(sem.distractor_prompts)} distractor prompts "
         f"{'needs a' if sem.enabled else 'takes no'} scorer; build it with "
-        "guidance.make_scorer(cfg.semantic, scene).")
+        "guidance.make_scorer(cfg, scene).")
 
 
 def scores_due(step: jax.Array, sem: config_lib.SemanticConfig) -> jax.Array:
@@ -328,12 +331,14 @@ def prune_due(step: int, cfg: config_lib.Config) -> bool:
           and since >= 0 and since % sem.prune_every == 0 and not quiet)
 
 
-def prune_thresholds(sem: config_lib.SemanticConfig,
+def prune_thresholds(cfg: config_lib.Config,
                      tau: float | None = None) -> dict[str, float]:
-  """semantic.prune_masks' thresholds for `sem`: tau_p (pixel evidence)
-  or tau, or `tau` when given (a preview of another threshold)."""
+  """semantic.prune_masks' thresholds for `cfg`: pixel.tau_p (pixel
+  evidence) or semantic.tau, or `tau` when given (a preview of another
+  threshold)."""
+  sem = cfg.semantic
   if tau is None:
-    tau = sem.tau_p if sem.localized else sem.tau
+    tau = cfg.pixel.tau_p if sem.localized else sem.tau
   return {"tau": tau, "n_min": sem.n_min / sem.score_every,
           "alpha_min": sem.alpha_min,
           "min_weight": semantic.MIN_EVIDENCE_WEIGHT if sem.localized
@@ -341,14 +346,13 @@ def prune_thresholds(sem: config_lib.SemanticConfig,
           "rare_needs_evidence": sem.rare_needs_evidence}
 
 
-def prune_candidates(state: state_lib.TrainState,
-                     sem: config_lib.SemanticConfig
+def prune_candidates(state: state_lib.TrainState, cfg: config_lib.Config
                      ) -> tuple[jax.Array, jax.Array]:
-  """Eq. 13's two clauses on `state` under `sem`'s thresholds, before the
+  """Eq. 13's two clauses on `state` under `cfg`'s thresholds, before the
   guard: (semantic, visibility), as semantic.prune_masks."""
   return semantic.prune_masks(
       state.semantic, state.params.opacity_logits, state.alive,
-      **prune_thresholds(sem))
+      **prune_thresholds(cfg))
 
 
 def prune(state: state_lib.TrainState, spared: jax.Array | None = None, *,
@@ -375,7 +379,7 @@ def prune(state: state_lib.TrainState, spared: jax.Array | None = None, *,
     semantic rule removed (for the mask IoU of the pruned Gaussians).
   """
   sem = cfg.semantic
-  by_score, by_visibility = prune_candidates(state, sem)
+  by_score, by_visibility = prune_candidates(state, cfg)
   if spared is not None:
     by_score &= ~spared
   wanted = jnp.sum(by_score | by_visibility, dtype=jnp.int32)
@@ -402,7 +406,7 @@ def prune(state: state_lib.TrainState, spared: jax.Array | None = None, *,
   return state, info
 
 
-@config_lib.cache_by_compiled_part()
+@compiled.cache_by_compiled_part()
 def make_prune(cfg: config_lib.Config):
   """Jitted prune(state, spared) -> (state, info); the state is donated."""
   return jax.jit(functools.partial(prune, cfg=cfg), donate_argnums=(0,))

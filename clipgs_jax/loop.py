@@ -324,7 +324,7 @@ def _spared_rows(state: state_lib.TrainState, ctx: Context
   sem = ctx.cfg.semantic
   if sem.prune_harm <= 0:
     return None, 0
-  candidates = np.asarray(guidance.prune_candidates(state, sem)[0])
+  candidates = np.asarray(guidance.prune_candidates(state, ctx.cfg)[0])
   if not candidates.any():
     return None, 0
   share, _, _ = render_without.harmed_share(

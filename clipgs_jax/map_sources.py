@@ -66,7 +66,7 @@ class ResidualMap:
 
 
 def _test(source: ResidualSource, stats: residual.ResidualState,
-          view: jax.Array, res: jax.Array, sem: config_lib.SemanticConfig,
+          view: jax.Array, res: jax.Array, rc: config_lib.ResidualConfig,
           valid: jax.Array | None) -> dict[str, jax.Array]:
   """The residual test's steps, each float32 [H, W] in {0, 1} (1 =
   transient so far), in order: "threshold" (the residual at or above the
@@ -74,16 +74,16 @@ def _test(source: ResidualSource, stats: residual.ResidualState,
   feature regions, "vote" (each region's majority); the last is the test's
   verdict."""
   steps = {"threshold": (res >= stats.threshold).astype(jnp.float32)}
-  inlier = residual.inliers(res, stats.threshold, sem.residual_rule, valid)
+  inlier = residual.inliers(res, stats.threshold, rc.rule, valid)
   steps["rule"] = 1.0 - inlier
   if source.labels is not None:
     steps["vote"] = features.vote(inlier, source.labels[view],
-                                  source.num_regions, sem.residual_vote)
+                                  source.num_regions, rc.vote)
   return steps
 
 
 def _gates(source: ResidualSource, view: jax.Array,
-           sem: config_lib.SemanticConfig, valid: jax.Array | None,
+           rc: config_lib.ResidualConfig, valid: jax.Array | None,
            alpha: jax.Array | None) -> dict[str, jax.Array]:
   """The gates a transient pixel must pass, float [H, W] in {0, 1} each
   (1 = it may be transient), in the order they apply: "semantic" (p >
@@ -93,11 +93,11 @@ def _gates(source: ResidualSource, view: jax.Array,
   if source.semantic is not None:
     gates["semantic"] = (source.semantic[view] > SEMANTIC_GATE).astype(
         jnp.float32)
-  if sem.residual_min_alpha > 0:
+  if rc.min_alpha > 0:
     if alpha is None:
-      raise ValueError("residual_map: semantic.residual_min_alpha = "
-                       f"{sem.residual_min_alpha} needs the render's alpha.")
-    covered = (alpha > sem.residual_min_alpha).astype(jnp.float32)
+      raise ValueError("residual_map: residual.min_alpha = "
+                       f"{rc.min_alpha} needs the render's alpha.")
+    covered = (alpha > rc.min_alpha).astype(jnp.float32)
     if source.labels is not None:
       covered = 1.0 - features.vote(covered, source.labels[view],
                                     source.num_regions)
@@ -108,19 +108,19 @@ def _gates(source: ResidualSource, view: jax.Array,
 
 
 def _marks_enough(transient: jax.Array, valid: jax.Array | None,
-                  sem: config_lib.SemanticConfig) -> jax.Array:
+                  rc: config_lib.ResidualConfig) -> jax.Array:
   """float32 [], 1 where `transient` marks at least
-  sem.residual_min_share of the photo's pixels, else 0 (the view is taken
+  rc.min_share of the photo's pixels, else 0 (the view is taken
   as clean)."""
   area = jnp.size(transient) if valid is None else jnp.sum(valid)
-  return (jnp.sum(transient) >= sem.residual_min_share * area).astype(
+  return (jnp.sum(transient) >= rc.min_share * area).astype(
       jnp.float32)
 
 
 def residual_map(source: ResidualSource, stats: residual.ResidualState,
                  view: jax.Array, render: jax.Array, photo: jax.Array,
                  step: jax.Array, key: jax.Array,
-                 sem: config_lib.SemanticConfig,
+                 rc: config_lib.ResidualConfig,
                  valid: jax.Array | None = None,
                  alpha: jax.Array | None = None) -> ResidualMap:
   """The transient map of training view `view` at `step`.
@@ -133,57 +133,57 @@ def residual_map(source: ResidualSource, stats: residual.ResidualState,
     photo: float [H, W, 3], the view's photo.
     step: int32 [], finished steps.
     key: the step's PRNG key for the warm-up's sampling.
-    sem: the semantic config (residual_* fields).
+    rc: the residual map's settings.
     valid: None, or float [H, W] in {0, 1}, the photo's pixels on a larger
       canvas: the pixels outside are neither transient nor static (0 in
       both maps' masks; residual.counts leaves them out).
     alpha: float [H, W], the render's alpha; needed when
-      sem.residual_min_alpha > 0: a pixel is transient only where alpha
+      rc.min_alpha > 0: a pixel is transient only where alpha
       exceeds it, or, with feature regions, only in a region where most
       pixels' alpha does (the gate follows the region, as the vote does).
-  A map that, after these gates, marks less than sem.residual_min_share of
+  A map that, after these gates, marks less than rc.min_share of
   the photo's pixels is empty, and the view's loss keeps every pixel.
   Raises:
-    ValueError: sem.residual_min_alpha > 0 and no alpha.
+    ValueError: rc.min_alpha > 0 and no alpha.
   """
   res = residual.residual(render, photo)
-  transient = list(_test(source, stats, view, res, sem, valid).values())[-1]
+  transient = list(_test(source, stats, view, res, rc, valid).values())[-1]
   kept = residual.sample_inliers(1.0 - transient, step, key,
-                                 sem.residual_warmup)
+                                 rc.warmup)
   dropped = 1.0 - kept
-  for gate in _gates(source, view, sem, valid, alpha).values():
+  for gate in _gates(source, view, rc, valid, alpha).values():
     transient, dropped = transient * gate, dropped * gate
-  if sem.residual_min_share > 0:
-    big = _marks_enough(transient, valid, sem)
+  if rc.min_share > 0:
+    big = _marks_enough(transient, valid, rc)
     transient, dropped = transient * big, dropped * big
   return ResidualMap(transient=transient, loss_weight=1.0 - dropped,
                      residual=res)
 
 
 def held_back(rmap: ResidualMap, source: ResidualSource, view: jax.Array,
-              step: jax.Array, sem: config_lib.SemanticConfig
+              step: jax.Array, rc: config_lib.ResidualConfig
               ) -> ResidualMap:
   """`rmap` as the step that starts at `step` uses it: empty (no pixel
-  transient, every pixel in the loss) before sem.residual_start; with
-  feature regions and sem.residual_uniformity, before
-  sem.residual_uniform_until only the regions whose residual is uniform
+  transient, every pixel in the loss) before rc.start; with
+  feature regions and rc.uniformity, before
+  rc.uniform_until only the regions whose residual is uniform
   (features.uniform) stay transient. The evaluation maps (view_map, mask
   quality) are the test's own map, which the step uses from then on."""
-  uniform = sem.residual_uniformity > 0 and source.labels is not None
-  if not sem.residual_start and not uniform:
+  uniform = rc.uniformity > 0 and source.labels is not None
+  if not rc.start and not uniform:
     return rmap
-  on = (step >= sem.residual_start).astype(jnp.float32)
+  on = (step >= rc.start).astype(jnp.float32)
   if uniform:
     even = features.uniform(rmap.residual, source.labels[view],
-                            source.num_regions, sem.residual_uniformity)
-    on = on * jnp.where(step < sem.residual_uniform_until, even, 1.0)
+                            source.num_regions, rc.uniformity)
+    on = on * jnp.where(step < rc.uniform_until, even, 1.0)
   return rmap.replace(transient=rmap.transient * on,
                       loss_weight=1.0 - on * (1.0 - rmap.loss_weight))
 
 
 def residual_stages(source: ResidualSource, stats: residual.ResidualState,
                     view: jax.Array, render: jax.Array, alpha: jax.Array,
-                    photo: jax.Array, sem: config_lib.SemanticConfig,
+                    photo: jax.Array, rc: config_lib.ResidualConfig,
                     valid: jax.Array | None = None
                     ) -> dict[str, jax.Array]:
   """Where the residual map's transient pixels go: {step: the map after
@@ -191,12 +191,12 @@ def residual_stages(source: ResidualSource, stats: residual.ResidualState,
   last of them in STAGES' order equals residual_map's `transient` (the
   warm-up samples only the loss weight). Arguments as residual_map's."""
   res = residual.residual(render, photo)
-  stages = _test(source, stats, view, res, sem, valid)
+  stages = _test(source, stats, view, res, rc, valid)
   transient = list(stages.values())[-1]
-  for name, gate in _gates(source, view, sem, valid, alpha).items():
+  for name, gate in _gates(source, view, rc, valid, alpha).items():
     transient = stages[name] = transient * gate
-  if sem.residual_min_share > 0:
-    stages["share"] = transient * _marks_enough(transient, valid, sem)
+  if rc.min_share > 0:
+    stages["share"] = transient * _marks_enough(transient, valid, rc)
   return stages
 
 
@@ -262,16 +262,16 @@ def oracle_patch_maps(masks, grid: int) -> jax.Array:
 
 def view_map(scorer, stats: residual.ResidualState | None, view: jax.Array,
              render: jax.Array, alpha: jax.Array, photo: jax.Array,
-             sem: config_lib.SemanticConfig,
+             rc: config_lib.ResidualConfig,
              valid: jax.Array | None = None) -> jax.Array:
   """float32 [H, W], the map m a training step on `view` would use now:
   the residual map for a ResidualSource (from `render` and `alpha`, the
   view rendered by the current model; `valid` as residual_map's; m does
-  not depend on the warm-up's sampling, and before sem.residual_start it
+  not depend on the warm-up's sampling, and before rc.start it
   is the test's map, which the step does not use yet: held_back), else
   the static map of a guidance.PixelMapScorer (`render` unread)."""
   if isinstance(scorer, ResidualSource):
     return residual_map(scorer, stats, view, render, photo, jnp.int32(0),
-                        jax.random.key(0), sem, valid=valid,
+                        jax.random.key(0), rc, valid=valid,
                         alpha=alpha).transient
   return scorer.score_map(view)

@@ -131,16 +131,17 @@ def load_state(workdir: str):
   return run, cfg, scene, state
 
 
-def semantic_label(sem: config_lib.SemanticConfig) -> str:
+def semantic_label(cfg: config_lib.Config) -> str:
   """How tables and logs name a run's guidance; oracles say so."""
+  sem, pixel, rc = cfg.semantic, cfg.pixel, cfg.residual
   if not sem.enabled:
     return "vanilla 3DGS"
   variant = ""
   if not sem.localized and sem.weighting != "visibility":
     variant += f", {sem.weighting}-weighted accumulation"
-  if sem.localized and not sem.agreement:
+  if sem.localized and not pixel.agreement:
     variant += ", raw map (no agreement)"
-  if sem.loss_masking:
+  if pixel.loss_masking:
     variant += ", loss masking"
   if sem.lambda_c == 0:
     variant += ", no opacity loss"
@@ -148,18 +149,18 @@ def semantic_label(sem: config_lib.SemanticConfig) -> str:
     variant += ", no pruning"
   if sem.localized:
     # The residual test's rule, and the regions that vote it if any.
-    rule = sem.residual_rule + (f", {sem.features} feature regions"
-                                if sem.features else "")
-    if sem.features and sem.residual_vote != 0.5:
-      rule += f" masked at {sem.residual_vote:g} failing"
-    default_gate = config_lib.SemanticConfig.residual_uniformity
-    if sem.features and sem.residual_uniformity != default_gate:
+    rule = rc.rule + (f", {rc.features} feature regions"
+                      if rc.features else "")
+    if rc.features and rc.vote != 0.5:
+      rule += f" masked at {rc.vote:g} failing"
+    default_gate = config_lib.ResidualConfig.uniformity
+    if rc.features and rc.uniformity != default_gate:
       rule += (f", early only where even (std / mean < "
-               f"{sem.residual_uniformity:g})" if sem.residual_uniformity
+               f"{rc.uniformity:g})" if rc.uniformity
                else ", no early uniformity gate")
     if sem.scorer == "residual":
       return f"residual map ({rule}, no weights, no oracle)" + variant
-    if sem.residual:
+    if rc.with_semantic:
       variant += f", gating the residual map ({rule})"
     if sem.scorer == "oracle_patch":
       return ("localized CLIP-GS machinery, ORACLE-PATCH scorer "
@@ -202,7 +203,7 @@ def _write_semantic_logs(workdir: str, cfg: config_lib.Config,
                              int(jax.device_get(state.alive.sum())),
                              state.semantic)
   block = {"scorer": cfg.semantic.scorer, "evidence": cfg.semantic.evidence,
-           "label": semantic_label(cfg.semantic),
+           "label": semantic_label(cfg),
            "num_scored_steps": len(result.scores), **block}
   if result.pruned is not None:
     block["pruned_mask_iou"] = evaluation.transient_mask_iou(
@@ -260,7 +261,7 @@ def train_and_evaluate(cfg: config_lib.Config, workdir: str, *,
                "" if scene.train.sizes is None else " (canvas)",
                len(scene.points), scene.extent)
   try:
-    scorer = guidance.make_scorer(cfg.semantic, scene,
+    scorer = guidance.make_scorer(cfg, scene,
                                   clip_weights=clip_weights)
   except (ValueError, FileNotFoundError) as e:
     raise app.UsageError(f"--config.semantic.scorer={cfg.semantic.scorer}: "
@@ -304,7 +305,7 @@ def _train_into(cfg: config_lib.Config, scene, workdir: str, *, scorer,
   os.makedirs(workdir, exist_ok=True)
   fileio.write_json(os.path.join(workdir, RUN_JSON), dict(
       run_info, lpips_net=lpips_net,
-      guidance=semantic_label(cfg.semantic)))
+      guidance=semantic_label(cfg)))
   fileio.write_json(os.path.join(workdir, CONFIG_JSON),
                     config_lib.to_dict(cfg))
   result = train.fit(cfg, scene, workdir, scorer=scorer, resume=resume,

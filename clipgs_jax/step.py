@@ -36,6 +36,7 @@ import jax.numpy as jnp
 from jax.sharding import PartitionSpec
 
 from clipgs_jax import camera as camera_lib
+from clipgs_jax import compiled
 from clipgs_jax import config as config_lib
 from clipgs_jax import densify
 from clipgs_jax import guidance
@@ -164,7 +165,7 @@ def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
              None if scorer is None else state_lib.SemanticStats.zeros(
                  capacity),
              (jnp.zeros((residual_lib.HISTOGRAM_BINS,), jnp.float32)
-              if cfg.semantic.uses_residual and scorer is not None
+              if cfg.uses_residual and scorer is not None
               else None))
     sums, per_view = jax.lax.scan(body, zeros, jnp.arange(local))
   grads, dens, evidence, hist = sums
@@ -184,7 +185,7 @@ def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
   if evidence is not None:
     semantic_stats = jax.tree.map(jnp.add, state.semantic, evidence)
   if hist is not None:
-    maps = view_lib.update_maps(maps, cfg.semantic, hist)
+    maps = view_lib.update_maps(maps, cfg.residual, hist)
   metrics = {k: (jnp.mean(v) if k in _MEAN_KEYS else v)
              for k, v in per_view.items()}
   metrics.update(
@@ -193,7 +194,7 @@ def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
       num_alive=jnp.sum(state.alive, dtype=jnp.int32), sh_degree=degree,
       means_lr=optim.means_lr(step, cfg.optim, cfg.scene_extent,
                               cfg.train.steps))
-  if cfg.semantic.uses_residual:
+  if cfg.uses_residual:
     metrics["residual_threshold"] = state.maps.threshold
   metrics.update(grad_norms)
   new_state = state.replace(params=params, opt_state=opt_state,
@@ -233,7 +234,7 @@ def make_train_step(cfg: config_lib.Config, mesh,
   """Jitted train_step(state, lanes, scorer) -> (state, metrics); the
   state is donated, the scorer (frozen weights or maps) is not.
 
-  Cached by the config's compiled part (config.compiled_part), the mesh
+  Cached by the config's compiled part (compiled.py), the mesh
   and `vmap_lanes` (None: `lanes_vmapped(mesh)`), so every caller whose
   config differs only in what the step does not read (data, eval, seed,
   cadences, the prune rule) shares one compiled step; it recompiles only
@@ -241,8 +242,8 @@ def make_train_step(cfg: config_lib.Config, mesh,
   """
   if vmap_lanes is None:
     vmap_lanes = lanes_vmapped(mesh)
-  return _make(config_lib.compiled_part(
-      cfg, config_lib.SEMANTIC_FIELDS_NOT_IN_STEP), mesh, vmap_lanes)
+  return _make(compiled.compiled_part(
+      cfg, compiled.NOT_IN_STEP), mesh, vmap_lanes)
 
 
 make_train_step.cache_clear = _make.cache_clear

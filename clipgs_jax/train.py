@@ -49,7 +49,7 @@ def init_state(cfg: config_lib.Config, params: gaussians.GaussianParams,
       step=jnp.zeros((), jnp.int32),
       key=jax.random.key(cfg.train.seed),
       maps=(residual_lib.ResidualState.initial()
-            if cfg.semantic.uses_residual else None))
+            if cfg.uses_residual else None))
 
 
 def resolve(cfg: config_lib.Config, scene) -> config_lib.Config:
@@ -98,7 +98,7 @@ def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,
       (`resolve`).
     scene: a data.scene.Scene (train/test Views, points, extent).
     workdir: where the checkpoint goes (created if missing).
-    scorer: guidance.make_scorer(cfg.semantic, scene, ...); None exactly
+    scorer: guidance.make_scorer(cfg, scene, ...); None exactly
       when cfg.semantic is not enabled.
     resume: continue from workdir/checkpoint.npz if it exists; the result
       is bit-identical to an uninterrupted run.

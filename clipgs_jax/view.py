@@ -137,12 +137,13 @@ def render_and_grad(state: state_lib.TrainState, scorer,
   localized = scorer is not None and sem.localized
   # The residual map depends on the render: it cannot go into the render's
   # pass, so its per-Gaussian sums come from the backward pass (probe).
-  dynamic = scorer is not None and sem.uses_residual
+  dynamic = scorer is not None and cfg.uses_residual
   size, valid = (None, None) if canvas is None else canvas
   evidence_map = (jax.lax.stop_gradient(scorer.score_map(view))
                   if localized and not dynamic else None)
   loss_weight = (1.0 - evidence_map
-                 if evidence_map is not None and sem.loss_masking else None)
+                 if evidence_map is not None and cfg.pixel.loss_masking
+                 else None)
   sample_key = jax.random.fold_in(
       jax.random.fold_in(key, _RESIDUAL_STREAM), step)
 
@@ -156,11 +157,11 @@ def render_and_grad(state: state_lib.TrainState, scorer,
     weight, rmap = loss_weight, None
     if dynamic:
       rmap = map_sources.residual_map(scorer, state.maps, view, out.image,
-                                      target, step, sample_key, sem,
+                                      target, step, sample_key, cfg.residual,
                                       valid=valid,
                                       alpha=jax.lax.stop_gradient(out.alpha))
-      rmap = map_sources.held_back(rmap, scorer, view, step, sem)
-      if sem.loss_masking:
+      rmap = map_sources.held_back(rmap, scorer, view, step, cfg.residual)
+      if cfg.pixel.loss_masking:
         weight = rmap.loss_weight
     loss, terms = losses.photometric(out.image, target,
                                      cfg.train.lambda_dssim, weight,
@@ -233,7 +234,7 @@ def semantic_increment(vp: ViewPass, scorer, *, view: jax.Array,
   zero = state_lib.SemanticStats.zeros(vp.proj.depths.shape[0])
   out = vp.out
   due = guidance.scores_due(step, sem)
-  if sem.uses_residual:
+  if cfg.uses_residual:
     # The map's per-Gaussian sums are the probe's gradient.
     transient = vp.rmap.transient
     inc = semantic_lib.accumulate_pixel(zero, vp.probe_grad,
@@ -245,7 +246,7 @@ def semantic_increment(vp: ViewPass, scorer, *, view: jax.Array,
         / jnp.maximum(jnp.sum(transient), 1.0))
   if sem.localized:
     evidence, weight = out.evidence, out.contribution
-    if sem.agreement:
+    if cfg.pixel.agreement:
       # The static map is 0 outside a canvas's photo, so the second pass's
       # sums leave those pixels out.
       reproduced = reproduced_evidence(
@@ -262,13 +263,12 @@ def semantic_increment(vp: ViewPass, scorer, *, view: jax.Array,
 
 
 def update_maps(maps: residual_lib.ResidualState,
-                sem: config_lib.SemanticConfig, histogram: jax.Array
+                rc: config_lib.ResidualConfig, histogram: jax.Array
                 ) -> residual_lib.ResidualState:
   """The residual map's statistics after a step: residual.update with the
   run's threshold settings on the `histogram` of the step's residuals
   (residual.counts summed over its views)."""
-  return residual_lib.update(maps, quantile=sem.residual_quantile,
-                             decay=sem.residual_decay,
-                             median_factor=sem.residual_median_factor,
-                             minimum=sem.residual_min_threshold,
+  return residual_lib.update(maps, quantile=rc.quantile, decay=rc.decay,
+                             median_factor=rc.median_factor,
+                             minimum=rc.min_threshold,
                              histogram=histogram)

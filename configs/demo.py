@@ -32,8 +32,8 @@ def get_config():
   # One checkpoint, at the end, whatever --config.train.steps says.
   cd.train.checkpoint_every = cd.train.get_ref("steps")
   cd.eval.curve_points = CURVE_POINTS
-  pixel = {"evidence": "pixel", "loss_masking": True,
-           "scale_schedule": True}
+  pixel = {"semantic": {"evidence": "pixel", "scale_schedule": True},
+           "pixel": {"loss_masking": True}}
   cd.sweep = config_dict.ConfigDict({
       "kind": "demo",
       "benchmarks": "",          # "": the embedded scene; --scene sets it
@@ -53,14 +53,17 @@ def get_config():
           # The share floor is off: unmeasured here, and this scene's
           # smallest transients cover 3 % of a view.
           "residual": {
-              "semantic": {"scorer": "residual", "features": "alex",
-                           "residual_min_threshold": 0.0,
-                           "residual_min_share": 0.0, **pixel},
+              "semantic": dict(pixel["semantic"], scorer="residual"),
+              "pixel": pixel["pixel"],
+              "residual": {"features": "alex", "min_threshold": 0.0,
+                           "min_share": 0.0},
               "train": {"lambda_dssim": 0.0}},
-          "oracle_pixel_masked": {"semantic": {"scorer": "oracle", **pixel}},
+          "oracle_pixel_masked": dict(
+              pixel, semantic=dict(pixel["semantic"], scorer="oracle")),
       },
       # With --clip_weights: dense CLIP gates the residual row's map.
       "clip_overrides": {
-          "residual": {"semantic": {"scorer": "clip", "residual": True}}},
+          "residual": {"semantic": {"scorer": "clip"},
+                       "residual": {"with_semantic": True}}},
   })
   return cd

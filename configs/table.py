@@ -63,10 +63,10 @@ def get_config():
   # ORACLE rows do; SpotLessSplats drops the SSIM term, which cost
   # these 2,500-step runs (BUILD_NOTES.md, "Transient masks without an
   # oracle").
-  residual = {"semantic": {"scorer": "residual", "loss_masking": True,
-                           **pixel}}
-  features = {"semantic": {"features": "alex"}}
-  gated = {"semantic": {"residual": True}}
+  residual = {"semantic": {"scorer": "residual", **pixel},
+              "pixel": {"loss_masking": True}}
+  features = {"residual": {"features": "alex"}}
+  gated = {"residual": {"with_semantic": True}}
   clean = {"data": {"train_split": "clean"}}
   cd.sweep = config_dict.ConfigDict({
       "kind": "table",
@@ -77,8 +77,8 @@ def get_config():
           "vanilla": {"data": {"train_split": "clutter"}, "semantic": off},
           "oracle": {"semantic": {"scorer": "oracle"}},
           "oracle_pixel": {"semantic": {"scorer": "oracle", **pixel}},
-          "oracle_pixel_masked": {"semantic": {
-              "scorer": "oracle", "loss_masking": True, **pixel}},
+          "oracle_pixel_masked": {"semantic": {"scorer": "oracle", **pixel},
+                                  "pixel": {"loss_masking": True}},
           "clip": {"semantic": {"scorer": "clip"}},
           "clip_pixel": {"semantic": {"scorer": "clip", **pixel}},
           "residual": residual,

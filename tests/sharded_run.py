@@ -69,8 +69,8 @@ def config():
                                 eval_every=0, checkpoint_every=0),
       semantic=dataclasses.replace(
           cfg.semantic, scorer="oracle", evidence="pixel",
-          loss_masking=True, accumulate_start=0, reg_start=5,
-          prune_start=25, prune_every=10))
+          accumulate_start=0, reg_start=5, prune_start=25, prune_every=10),
+      pixel=dataclasses.replace(cfg.pixel, loss_masking=True))
 
 
 def anisotropic_state(cfg, scene):
@@ -129,7 +129,7 @@ def main(mode: str, out: str, *args):
       os.makedirs(workdir, exist_ok=True)
       start(cfg, full, workdir)
     return train.fit(cfg, scene, workdir, progress=False, resume=True,
-                     scorer=guidance.make_scorer(cfg.semantic, scene),
+                     scorer=guidance.make_scorer(cfg, scene),
                      **{k: v for k, v in kw.items() if k != "resume"})
   if mode == "process":
     fit("two_process")

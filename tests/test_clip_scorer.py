@@ -30,7 +30,8 @@ class ClipScorerTest(absltest.TestCase):
     self.sem = config.SemanticConfig(scorer="clip", clip_variant="tiny",
                                      accumulate_start=0)
     self.scorer = guidance.make_scorer(
-        self.sem, None, clip_params=(self.clip_config, self.params))
+        config.Config(semantic=self.sem), None,
+        clip_params=(self.clip_config, self.params))
 
   def test_scores_are_the_towers_cosines(self):
     from clipgs_jax.clip import preprocess  # pylint: disable=g-import-not-at-top
@@ -68,7 +69,8 @@ class ClipScorerTest(absltest.TestCase):
     sem = dataclasses.replace(self.sem, evidence="pixel",
                               dense_input_size=64)     # 8x8 tiny patches
     clip_params = (self.clip_config, self.params)
-    scorer = guidance.make_scorer(sem, scene, clip_params=clip_params)
+    scorer = guidance.make_scorer(config.Config(semantic=sem), scene,
+                                  clip_params=clip_params)
     self.assertIsInstance(scorer, guidance.PixelMapScorer)
     self.assertEqual(scorer.maps.shape, scene.train.images.shape[:3])
     self.assertTrue(bool(jnp.all((scorer.maps >= 0) & (scorer.maps <= 1))))
@@ -94,7 +96,7 @@ class NoClipImportTest(absltest.TestCase):
         for sem in (config.SemanticConfig(),
                     config.SemanticConfig(scorer="oracle"),
                     config.SemanticConfig(scorer="oracle", evidence="pixel")):
-          guidance.make_scorer(sem, s)
+          guidance.make_scorer(config.Config(semantic=sem), s)
         clip = [m for m in sys.modules if m.startswith("clipgs_jax.clip")]
         assert not clip, clip
         """)

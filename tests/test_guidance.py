@@ -113,16 +113,18 @@ class ScheduleTest(parameterized.TestCase):
                       sem.prune_every), (50, 200, 500, 100))
     # The warm-up's rate grows as the run shrinks: the same share at the
     # same fraction of the run (0.024 exactly at the table's 2,500 steps).
-    self.assertAlmostEqual(sem.residual_warmup, 0.03)
-    self.assertEqual(config.SemanticConfig().scaled_to(2500).residual_warmup,
-                     0.024)
+    rc = config.ResidualConfig()
+    self.assertAlmostEqual(rc.scaled_to(2000).warmup, 0.03)
+    self.assertEqual(rc.scaled_to(2500).warmup, 0.024)
     # The residual map's start scales like the other starts; 0 stays 0.
-    self.assertEqual(config.SemanticConfig(residual_start=5000).scaled_to(
-        2000).residual_start, 500)
-    self.assertEqual(config.SemanticConfig(residual_start=0).scaled_to(
-        2000).residual_start, 0)
-    self.assertEqual(config.SemanticConfig().scaled_to(
-        2500).residual_uniform_until, 1250)
+    self.assertEqual(config.ResidualConfig(start=5000).scaled_to(
+        2000).start, 500)
+    self.assertEqual(config.ResidualConfig(start=0).scaled_to(2000).start, 0)
+    self.assertEqual(rc.scaled_to(2500).uniform_until, 1250)
+    # Config.scaled_to scales both sections.
+    both = config.Config().scaled_to(2000)
+    self.assertEqual((both.semantic, both.residual),
+                     (sem, rc.scaled_to(2000)))
 
 
 class ScorerTest(absltest.TestCase):
@@ -141,23 +143,25 @@ class ScorerTest(absltest.TestCase):
   def test_oracle_needs_masks(self):
     scene = synthetic_scene(num=8, size=8, num_train=2, num_test=1)
     with self.assertRaisesRegex(ValueError, "masks/"):
-      guidance.make_scorer(ORACLE, scene)
+      guidance.make_scorer(config.Config(semantic=ORACLE), scene)
 
   def test_off_imports_nothing(self):
-    self.assertIsNone(guidance.make_scorer(config.SemanticConfig(), None))
+    self.assertIsNone(guidance.make_scorer(config.Config(), None))
 
   def test_pixel_oracle_maps_are_the_masks(self):
     scene = _masked_scene()
-    scorer = guidance.make_scorer(
-        config.SemanticConfig(scorer="oracle", evidence="pixel"), scene)
+    scorer = guidance.make_scorer(config.Config(
+        semantic=config.SemanticConfig(scorer="oracle", evidence="pixel")),
+                                  scene)
     self.assertIsInstance(scorer, guidance.PixelMapScorer)
     np.testing.assert_array_equal(scorer.score_map(jnp.int32(2)),
                                   scene.train.masks[2].astype(np.float32))
 
   def test_uniform_control_spreads_the_masks_mean(self):
     scene = _masked_scene()
-    scorer = guidance.make_scorer(
-        config.SemanticConfig(scorer="uniform", evidence="pixel"), scene)
+    uniform = config.Config(semantic=config.SemanticConfig(
+        scorer="uniform", evidence="pixel"))
+    scorer = guidance.make_scorer(uniform, scene)
     fraction = np.mean(scene.train.masks)
     self.assertGreater(fraction, 0.0)
     for view in range(scene.train.masks.shape[0]):
@@ -166,8 +170,7 @@ class ScorerTest(absltest.TestCase):
                                          fraction), rtol=1e-6)
     no_masks = synthetic_scene(num=8, size=8, num_train=2, num_test=1)
     with self.assertRaisesRegex(ValueError, "'uniform' reads ground-truth"):
-      guidance.make_scorer(config.SemanticConfig(
-          scorer="uniform", evidence="pixel"), no_masks)
+      guidance.make_scorer(uniform, no_masks)
 
   def test_score_and_accumulate(self):
     sem = config.SemanticConfig(scorer="oracle", accumulate_start=3,
@@ -238,7 +241,7 @@ class PruneTest(parameterized.TestCase):
     # Rows 0 and 1 are over tau; row 2 is rarely seen and faint.
     state = _state_with_stats([0.205, 0.3, 0.0], [10.0, 10.0, 0.0],
                               [0.5, 0.5, 0.05], [True, True, True])
-    semantic_rows, _ = guidance.prune_candidates(state, cfg.semantic)
+    semantic_rows, _ = guidance.prune_candidates(state, cfg)
     np.testing.assert_array_equal(semantic_rows, [True, True, False])
     state, info = guidance.prune(state, jnp.asarray([True, False, False]),
                                  cfg=cfg)
@@ -342,21 +345,25 @@ class WiredStepTest(absltest.TestCase):
               state, lanes, scorer).as_text()
     vanilla = lowered(cfg)
     # Guidance off, whatever its other fields: the same program.
-    for sem in (config.SemanticConfig(tau=0.3, beta=0.5),
-                config.SemanticConfig(evidence="pixel", tau_p=0.2)):
-      self.assertEqual(lowered(dataclasses.replace(cfg, semantic=sem)),
-                       vanilla)
+    for sem, pixel in ((config.SemanticConfig(tau=0.3, beta=0.5),
+                        config.PixelConfig()),
+                       (config.SemanticConfig(evidence="pixel"),
+                        config.PixelConfig(tau_p=0.2, loss_masking=True))):
+      self.assertEqual(lowered(dataclasses.replace(cfg, semantic=sem,
+                                                   pixel=pixel)), vanilla)
     with self.assertRaisesRegex(ValueError, "takes no"):
       lowered(cfg, guidance.OracleScorer(
           masks=jnp.zeros((1, 8, 32, 32), bool), saturation=0.1))
 
-  def _pixel_step(self, map_value, **semantic_fields):
+  def _pixel_step(self, map_value, pixel=config.PixelConfig(),
+                  **semantic_fields):
     """One scored step of the pixel-evidence train step with a constant
     map; returns (state before, state after, metrics)."""
     scene = synthetic_scene()
     sem = config.SemanticConfig(scorer="oracle", evidence="pixel",
                                 accumulate_start=0, **semantic_fields)
-    cfg = train.resolve(dataclasses.replace(TEST_CFG, semantic=sem), scene)
+    cfg = train.resolve(dataclasses.replace(TEST_CFG, semantic=sem,
+                                            pixel=pixel), scene)
     state = train.initial_state(cfg, scene)
     maps = jnp.full(scene.train.images.shape[:3], map_value, jnp.float32)
     after, metrics = _one_step(cfg, scene, state,
@@ -364,7 +371,8 @@ class WiredStepTest(absltest.TestCase):
     return state, after, metrics
 
   def test_pixel_step_accumulates_the_map(self):
-    _, after, metrics = self._pixel_step(0.25, agreement=False)
+    _, after, metrics = self._pixel_step(
+        0.25, config.PixelConfig(agreement=False))
     stats = after.semantic
     seen = np.asarray(stats.weight) > 0
     self.assertGreater(seen.sum(), 10)
@@ -377,7 +385,7 @@ class WiredStepTest(absltest.TestCase):
     self.assertAlmostEqual(float(metrics["map_mean"][0]), 0.25, places=6)
 
   def test_agreement_weights_the_map(self):
-    _, raw, _ = self._pixel_step(0.25, agreement=False)
+    _, raw, _ = self._pixel_step(0.25, config.PixelConfig(agreement=False))
     _, weighted, _ = self._pixel_step(0.25)
     # The second pass renders the same splats: the weight on static pixels,
     # sum w (1 - m), is unchanged; transient weight counts only where the
@@ -396,8 +404,8 @@ class WiredStepTest(absltest.TestCase):
   def test_loss_masking_ignores_masked_pixels(self):
     # A fully transient map with loss masking: no pixel is fitted, so the
     # colours do not move (the opacity loss touches opacities only).
-    before, after, _ = self._pixel_step(1.0, loss_masking=True,
-                                        reg_start=10_000)
+    before, after, _ = self._pixel_step(
+        1.0, config.PixelConfig(loss_masking=True), reg_start=10_000)
     np.testing.assert_array_equal(np.asarray(after.params.sh_dc),
                                   np.asarray(before.params.sh_dc))
     _, moved, _ = self._pixel_step(1.0, reg_start=10_000)
@@ -412,7 +420,7 @@ class WiredStepTest(absltest.TestCase):
         scorer="oracle", accumulate_start=10, reg_start=20, prune_start=40,
         prune_every=20, tau=0.02, oracle_saturation=0.125)
     cfg = train.resolve(dataclasses.replace(TEST_CFG, semantic=sem), scene)
-    scorer = guidance.make_scorer(sem, scene)
+    scorer = guidance.make_scorer(cfg, scene)
     workdir = self.create_tempdir().full_path
     with CompileCounter() as compiles:
       result = train.fit(cfg, scene, workdir, scorer=scorer, progress=False)
@@ -456,7 +464,7 @@ class WiredStepTest(absltest.TestCase):
                                                         steps=21))
     return train.fit(train.resolve(cfg, scene), scene,
                      self.create_tempdir().full_path,
-                     scorer=guidance.make_scorer(sem, scene), progress=False)
+                     scorer=guidance.make_scorer(cfg, scene), progress=False)
 
   def test_guard_refuses_a_prune_that_deletes_the_scene(self):
     with self.assertLogs("clipgs_jax.loop", "WARNING") as logs:

@@ -53,7 +53,7 @@ class PixelOracleEndToEndTest(absltest.TestCase):
         semantic=sem)
     result = train.fit(train.resolve(cfg, scene), scene,
                        self.create_tempdir().full_path,
-                       scorer=guidance.make_scorer(sem, scene),
+                       scorer=guidance.make_scorer(cfg, scene),
                        progress=False)
     # Rows 0..P-1 are the sparse points, in order (initialize.initialize).
     alive = np.asarray(result.state.alive)[:len(scene.points)]

@@ -157,10 +157,9 @@ class WarmupTest(absltest.TestCase):
 
 class SourceTest(absltest.TestCase):
 
-  def _sem(self, **kw):
-    kw = {"residual_min_alpha": 0.0, **kw}   # no render alpha here
-    return dataclasses.replace(config.SemanticConfig(), scorer="residual",
-                               evidence="pixel", residual_warmup=0.0, **kw)
+  def _rc(self, **kw):
+    kw = {"min_alpha": 0.0, **kw}   # no render alpha here
+    return config.ResidualConfig(warmup=0.0, **kw)
 
   def test_residual_map_and_gate(self):
     photo = jnp.zeros((16, 16, 3))
@@ -170,7 +169,7 @@ class SourceTest(absltest.TestCase):
     view = jnp.int32(0)
     plain = map_sources.residual_map(
         map_sources.ResidualSource(), stats, view, render, photo,
-        jnp.int32(5), jax.random.key(0), self._sem())
+        jnp.int32(5), jax.random.key(0), self._rc())
     np.testing.assert_array_equal(plain.transient[5:11, 5:11], 1.0)
     self.assertEqual(float(jnp.sum(plain.transient[:3])), 0.0)
     np.testing.assert_array_equal(plain.loss_weight, 1.0 - plain.transient)
@@ -178,7 +177,7 @@ class SourceTest(absltest.TestCase):
     semantic = jnp.zeros((1, 16, 16)).at[0, :, :8].set(0.9)
     gated = map_sources.residual_map(
         map_sources.ResidualSource(semantic=semantic), stats, view, render,
-        photo, jnp.int32(5), jax.random.key(0), self._sem())
+        photo, jnp.int32(5), jax.random.key(0), self._rc())
     np.testing.assert_array_equal(gated.transient[:, 8:], 0.0)
     np.testing.assert_array_equal(gated.transient[:, :8],
                                   plain.transient[:, :8])
@@ -187,23 +186,23 @@ class SourceTest(absltest.TestCase):
     photo = jnp.zeros((20, 20, 3))
     stats = residual.ResidualState.initial().replace(
         threshold=jnp.float32(0.5))
-    sem = self._sem(residual_min_share=0.05)   # 20 of 400 pixels
+    rc = self._rc(min_share=0.05)   # 20 of 400 pixels
     for size, kept in ((4, False), (6, True)):
       render = photo.at[:size, :size].set(1.0)
       rmap = map_sources.residual_map(
           map_sources.ResidualSource(), stats, jnp.int32(0), render, photo,
-          jnp.int32(5), jax.random.key(0), self._sem())
+          jnp.int32(5), jax.random.key(0), self._rc())
       self.assertEqual(float(jnp.sum(rmap.transient)) >= 20, kept)
       floored = map_sources.residual_map(
           map_sources.ResidualSource(), stats, jnp.int32(0), render, photo,
-          jnp.int32(5), jax.random.key(0), sem)
+          jnp.int32(5), jax.random.key(0), rc)
       np.testing.assert_array_equal(floored.transient,
                                     rmap.transient if kept else 0.0)
       np.testing.assert_array_equal(floored.loss_weight,
                                     rmap.loss_weight if kept else 1.0)
       stages = map_sources.residual_stages(
           map_sources.ResidualSource(), stats, jnp.int32(0), render,
-          jnp.ones((20, 20)), photo, sem)
+          jnp.ones((20, 20)), photo, rc)
       np.testing.assert_array_equal(stages["share"], floored.transient)
     # On a larger canvas the share counts the photo's pixels only: the
     # 4x4 miss is under 5 % of the canvas, over 5 % of a 10x10 photo.
@@ -211,7 +210,7 @@ class SourceTest(absltest.TestCase):
     floored = map_sources.residual_map(
         map_sources.ResidualSource(), stats, jnp.int32(0),
         photo.at[:4, :4].set(1.0), photo, jnp.int32(5), jax.random.key(0),
-        sem, valid=valid)
+        rc, valid=valid)
     self.assertGreater(float(jnp.sum(floored.transient)), 5.0)
 
   def test_start_leaves_the_map_empty_before_it(self):
@@ -219,12 +218,12 @@ class SourceTest(absltest.TestCase):
     render = photo.at[4:12, 4:12].set(1.0)       # an 8x8 miss
     stats = residual.ResidualState.initial().replace(
         threshold=jnp.float32(0.5))
-    sem = self._sem(residual_start=100)
+    rc = self._rc(start=100)
     rmap = map_sources.residual_map(
         map_sources.ResidualSource(), stats, jnp.int32(0), render, photo,
-        jnp.int32(99), jax.random.key(0), sem)
+        jnp.int32(99), jax.random.key(0), rc)
     maps = [map_sources.held_back(rmap, map_sources.ResidualSource(),
-                                  jnp.int32(0), jnp.int32(step), sem)
+                                  jnp.int32(0), jnp.int32(step), rc)
             for step in (99, 100)]
     np.testing.assert_array_equal(maps[0].transient, 0.0)
     np.testing.assert_array_equal(maps[0].loss_weight, 1.0)
@@ -242,13 +241,13 @@ class SourceTest(absltest.TestCase):
     source = map_sources.ResidualSource(
         labels=jnp.zeros((1, 16, 16), jnp.int32).at[0, :, 8:].set(1),
         num_regions=2)
-    sem = self._sem(residual_uniformity=0.2, residual_uniform_until=100)
+    rc = self._rc(uniformity=0.2, uniform_until=100)
     rmap = map_sources.residual_map(source, stats, jnp.int32(0), render,
                                     photo, jnp.int32(99), jax.random.key(0),
-                                    sem)
+                                    rc)
     np.testing.assert_array_equal(rmap.transient, 1.0)
     early, late = [map_sources.held_back(rmap, source, jnp.int32(0),
-                                         jnp.int32(step), sem)
+                                         jnp.int32(step), rc)
                    for step in (99, 100)]
     np.testing.assert_array_equal(early.transient[:, :8], 1.0)
     np.testing.assert_array_equal(early.transient[:, 8:], 0.0)
@@ -259,10 +258,10 @@ class SourceTest(absltest.TestCase):
     # per-pixel map) there is nothing to gate.
     loose = map_sources.held_back(
         rmap, source, jnp.int32(0), jnp.int32(99),
-        self._sem(residual_uniformity=0.3, residual_uniform_until=100))
+        self._rc(uniformity=0.3, uniform_until=100))
     np.testing.assert_array_equal(loose.transient, 1.0)
     per_pixel = map_sources.held_back(rmap, map_sources.ResidualSource(),
-                                      jnp.int32(0), jnp.int32(99), sem)
+                                      jnp.int32(0), jnp.int32(99), rc)
     self.assertIs(per_pixel, rmap)
 
   def test_alpha_gate_keeps_transients_only_on_rendered_surface(self):
@@ -273,9 +272,9 @@ class SourceTest(absltest.TestCase):
     alpha = jnp.ones((16, 16)).at[:, 8:].set(0.3)  # no surface on the right
     args = (map_sources.ResidualSource(), stats, jnp.int32(0), render, photo,
             jnp.int32(5), jax.random.key(0))
-    plain = map_sources.residual_map(*args, self._sem(), alpha=alpha)
+    plain = map_sources.residual_map(*args, self._rc(), alpha=alpha)
     gated = map_sources.residual_map(
-        *args, self._sem(residual_min_alpha=0.5), alpha=alpha)
+        *args, self._rc(min_alpha=0.5), alpha=alpha)
     np.testing.assert_array_equal(gated.transient[:, :8],
                                   plain.transient[:, :8])
     np.testing.assert_array_equal(gated.transient[:, 8:], 0.0)
@@ -283,7 +282,7 @@ class SourceTest(absltest.TestCase):
     # The unmasked pixels are trained: the loss weight follows the map.
     np.testing.assert_array_equal(gated.loss_weight, 1.0 - gated.transient)
     with self.assertRaisesRegex(ValueError, "needs the render's alpha"):
-      map_sources.residual_map(*args, self._sem(residual_min_alpha=0.5))
+      map_sources.residual_map(*args, self._rc(min_alpha=0.5))
 
   def test_alpha_gate_follows_feature_regions(self):
     photo = jnp.zeros((16, 16, 3))
@@ -296,13 +295,13 @@ class SourceTest(absltest.TestCase):
              .at[:, 8:14].set(0.3))
     args = (stats, jnp.int32(0), render, photo, jnp.int32(5),
             jax.random.key(0))
-    sem = self._sem(residual_min_alpha=0.5)
+    rc = self._rc(min_alpha=0.5)
     pixels = map_sources.residual_map(
-        map_sources.ResidualSource(), *args, sem, alpha=alpha)
+        map_sources.ResidualSource(), *args, rc, alpha=alpha)
     np.testing.assert_array_equal(pixels.transient, alpha > 0.5)
     regions = map_sources.residual_map(
         map_sources.ResidualSource(labels=labels, num_regions=2), *args,
-        sem, alpha=alpha)
+        rc, alpha=alpha)
     # Each region gets its majority's verdict, its empty pixels and its
     # rendered ones alike.
     np.testing.assert_array_equal(regions.transient[:, :8], 1.0)
@@ -322,7 +321,7 @@ class SourceTest(absltest.TestCase):
     # of its 96 pixels, region 1 (the rest) on 80 of its 160.
     maps = {v: map_sources.residual_map(
         source, stats, jnp.int32(0), render, photo, jnp.int32(5),
-        jax.random.key(0), self._sem(residual_vote=v)).transient
+        jax.random.key(0), self._rc(vote=v)).transient
             for v in (0.5, 0.7, 0.9)}
     left, right = (0, 0), (0, 15)
     self.assertEqual([float(maps[v][left]) for v in (0.5, 0.7, 0.9)],
@@ -340,9 +339,9 @@ class SourceTest(absltest.TestCase):
         labels=jnp.zeros((1, 16, 16), jnp.int32).at[0, 8:].set(1),
         num_regions=2)
     alpha = jnp.ones((16, 16)).at[:, :3].set(0.3)
-    sem = self._sem(residual_min_alpha=0.5)
+    rc = self._rc(min_alpha=0.5)
     stages = map_sources.residual_stages(source, stats, jnp.int32(0),
-                                         render, alpha, photo, sem)
+                                         render, alpha, photo, rc)
     self.assertEqual(list(stages), ["threshold", "rule", "vote",
                                     "semantic", "alpha", "share"])
     self.assertEqual(tuple(k for k in map_sources.STAGES if k in stages),
@@ -353,7 +352,7 @@ class SourceTest(absltest.TestCase):
     np.testing.assert_array_equal(stages["rule"][7:9, 7:9], 0.0)
     transient = map_sources.residual_map(
         source, stats, jnp.int32(0), render, photo, jnp.int32(5),
-        jax.random.key(0), sem, alpha=alpha).transient
+        jax.random.key(0), rc, alpha=alpha).transient
     np.testing.assert_array_equal(stages["share"], transient)
     np.testing.assert_array_equal(stages["semantic"][:, 12:], 0.0)
 

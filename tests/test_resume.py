@@ -53,7 +53,7 @@ class KillAndResumeTest(absltest.TestCase):
   def test_resume_after_growth_and_prune_is_bit_identical(self):
     scene = _scene()
     cfg = train.resolve(_config(), scene)
-    scorer = guidance.make_scorer(cfg.semantic, scene)
+    scorer = guidance.make_scorer(cfg, scene)
     fit = lambda workdir, **kw: train.fit(
         cfg, scene, workdir, scorer=scorer, progress=False,
         summary_dir=os.path.join(workdir, "tb"), **kw)

@@ -148,7 +148,7 @@ class DeviceLanesTest(absltest.TestCase):
           semantic=dataclasses.replace(base.semantic, scorer=scorer_name)),
           scene)
       scorer = sharding.scorer_lanes(
-          guidance.make_scorer(cfg.semantic, scene), rows, h, w, mesh)
+          guidance.make_scorer(cfg, scene), rows, h, w, mesh)
       ends = []
       for vmap in (False, True):
         state = sharding.replicate(
@@ -265,8 +265,8 @@ class CanvasTest(absltest.TestCase):
     rule and share floor over its pixels (the photo alone gives it)."""
     cut, alone = _cut_second_view("train")
     cfg = test_train.TEST_CFG
-    cfg = dataclasses.replace(cfg, semantic=dataclasses.replace(
-        cfg.semantic, residual_min_alpha=0.0, residual_min_share=0.05))
+    cfg = dataclasses.replace(cfg, residual=dataclasses.replace(
+        cfg.residual, min_alpha=0.0, min_share=0.05))
     params = synthetic.random_params(40, seed=2, degree=1, spread=0.6)
     alive = jnp.ones((40,), bool)
     stats = residual.ResidualState.initial().replace(

@@ -14,6 +14,7 @@ from absl.testing import absltest
 
 from clipgs_jax.lab import timing
 from clipgs_jax import camera
+from clipgs_jax import compiled
 from clipgs_jax import config
 from clipgs_jax import densify
 from clipgs_jax import evaluation
@@ -239,6 +240,28 @@ class EndToEndTest(absltest.TestCase):
     self.assertEqual(out["n"], int(np.sum(np.asarray(state.alive))))
     np.testing.assert_array_equal(np.asarray(state.params.means), means)
 
+  def test_steps_after_the_first_compile_and_transfer_nothing(self):
+    # The loop dispatches steps back to back: after the first, a step of
+    # one view on one device, or of a guided run with the residual map,
+    # compiles nothing and moves nothing between host and device.
+    scene = synthetic_scene()
+    residual = dataclasses.replace(
+        TEST_CFG,
+        semantic=config.SemanticConfig(scorer="residual", evidence="pixel",
+                                       accumulate_start=0, reg_start=0),
+        pixel=config.PixelConfig(loss_masking=True))
+    for cfg in (TEST_CFG, residual):
+      cfg = train.resolve(cfg, scene)
+      step_fn, lanes, state, scorer = step.for_scene(
+          cfg, scene, train.initial_state(cfg, scene),
+          guidance.make_scorer(cfg, scene))
+      state, _ = jax.block_until_ready(step_fn(state, lanes, scorer))
+      with CompileCounter() as compiles, jax.transfer_guard("disallow"):
+        for _ in range(3):
+          state, metrics = step_fn(state, lanes, scorer)
+        jax.block_until_ready((state, metrics))
+      self.assertEqual(compiles.names, [], cfg.semantic.scorer)
+
   def test_runs_that_differ_on_the_host_share_one_step(self):
     # Another seed, split, curve and cadence: the same compiled functions
     # (a table's vanilla and clean rows compile their step once).
@@ -256,8 +279,10 @@ class EndToEndTest(absltest.TestCase):
     # The prune rule is not the step's: the step is shared, the prune not.
     oracle = config.SemanticConfig(scorer="oracle", evidence="pixel")
     strict = dataclasses.replace(TEST_CFG, semantic=oracle)
-    lenient = dataclasses.replace(TEST_CFG, semantic=dataclasses.replace(
-        oracle, tau_p=0.9, max_prune_fraction=1.0))
+    lenient = dataclasses.replace(
+        TEST_CFG,
+        semantic=dataclasses.replace(oracle, max_prune_fraction=1.0),
+        pixel=config.PixelConfig(tau_p=0.9))
     self.assertIs(make_step(strict), make_step(lenient))
     self.assertIsNot(guidance.make_prune(strict), guidance.make_prune(lenient))
     # What the step computes with is not shared.
@@ -266,8 +291,8 @@ class EndToEndTest(absltest.TestCase):
     self.assertIsNot(make_step(dssim), make_step(TEST_CFG))
     # A dropped field fails loudly where compiled code would read it (the
     # fits in this file trace every function above with dropped fields).
-    part = config.compiled_part(host)
-    self.assertIs(part.data, config.HOST_ONLY)
+    part = compiled.compiled_part(host)
+    self.assertIs(part.data, compiled.HOST_ONLY)
     with self.assertRaisesRegex(TypeError, "host-only config field"):
       bool(part.train.seed)
     with self.assertRaises(TypeError):

@@ -61,6 +61,8 @@ class ConfigFilesTest(absltest.TestCase):
     self.assertEqual(cfg.render.tile_size, 8)
     self.assertEqual(cfg.semantic,
                      config.SemanticConfig().scaled_to(2500))
+    self.assertEqual(cfg.residual,
+                     config.ResidualConfig().scaled_to(2500))
 
   def test_demo_checkpoints_once_at_any_steps(self):
     cd = _cd("demo")
@@ -76,6 +78,26 @@ class ConfigFilesTest(absltest.TestCase):
       config_file.from_config_dict({"train": {"seed": "0"}})
     with self.assertRaisesRegex(FileNotFoundError, "does not exist"):
       config_file.load_file("/nonexistent/config.py")
+
+  def test_runs_written_with_the_old_names_load(self):
+    # A run before the semantic settings were split (config.RENAMED): its
+    # config.json / checkpoint meta loads for the reports and the viewer.
+    cfg = config_file.named("benchmark")
+    old = config.to_dict(cfg)
+    for section in ("pixel", "residual"):
+      for field, value in old.pop(section).items():
+        name = "residual" if field == "with_semantic" else (
+            field if section == "pixel" or field == "features"
+            else "residual_" + field)
+        old["semantic"][name] = value
+    self.assertIn("residual_min_share", old["semantic"])
+    self.assertEqual(config_file.from_dict(old), cfg)
+    self.assertEqual(config.migrate(config.to_dict(cfg)),
+                     config.to_dict(cfg))
+    # A config file with an old name is refused with the new one.
+    with self.assertRaisesRegex(app.UsageError, "semantic.residual_vote is "
+                                "now residual.vote; rename it"):
+      config_file.check({"semantic": {"residual_vote": 0.6}})
 
 
 class BadValuesTest(parameterized.TestCase):
@@ -101,9 +123,13 @@ class BadValuesTest(parameterized.TestCase):
       ("no_prompts", {"semantic": {"scorer": "clip",
                                    "distractor_prompts": ""}},
        "no distractor prompts"),
-      ("masking_needs_pixels", {"semantic": {"scorer": "oracle",
-                                             "loss_masking": True}},
-       "loss_masking needs evidence='pixel'"))
+      ("masking_needs_pixels", {"semantic": {"scorer": "oracle"},
+                                "pixel": {"loss_masking": True}},
+       "loss_masking=True needs --config.semantic.evidence=pixel"),
+      ("features_need_the_residual_map",
+       {"semantic": {"scorer": "oracle", "evidence": "pixel"},
+        "residual": {"features": "alex"}},
+       "--config.residual.features=alex votes the residual test"))
   def test_bad_value(self, overrides, message):
     cd = _cd("default").to_dict()
     for section, values in overrides.items():
@@ -116,29 +142,36 @@ class BadValuesTest(parameterized.TestCase):
 class SemanticCheckTest(parameterized.TestCase):
   """config_file.check names the semantic field that cannot run."""
 
-  def _check(self, sem: config.SemanticConfig) -> config.Config:
-    return config_file.check({"semantic": dataclasses.asdict(sem)})
+  def _check(self, sem: config.SemanticConfig, **sections) -> config.Config:
+    return config_file.check({"semantic": dataclasses.asdict(sem),
+                              **sections})
 
   @parameterized.parameters(
-      ("scorer", "bogus", "scorer="), ("tau", 1.5, "tau="),
-      ("tau", -0.1, "tau="), ("beta", 0.0, "beta="),
-      ("score_every", 0, "score_every="), ("prune_every", 0, "prune_every="),
-      ("reset_quiet", -1, "reset_quiet="),
-      ("oracle_saturation", 0.0, "oracle_saturation="),
-      ("distractor_prompts", ("a photo of a person", " "), "prompt is empty"),
-      ("evidence", "patch", "evidence="), ("tau_p", 1.5, "tau_p="),
-      ("max_prune_fraction", 0.0, "max_prune_fraction="),
-      ("loss_masking", True, "loss_masking needs evidence='pixel'"),
-      ("dense_input_size", 0, "dense_input_size="),
-      ("residual_min_alpha", 1.0, "residual_min_alpha="),
-      ("residual_min_share", 1.0, "residual_min_share="),
-      ("residual_vote", 0.0, "residual_vote="),
-      ("residual_uniformity", -0.1, "residual_uniformity="),
-      ("residual_uniform_until", -1, "residual_uniform_until="))
-  def test_names_the_field(self, field, value, message):
-    sem = dataclasses.replace(ORACLE, **{field: value})
-    with self.assertRaisesRegex(app.UsageError, message):
-      self._check(sem)
+      ("semantic", "scorer", "bogus"), ("semantic", "tau", 1.5),
+      ("semantic", "tau", -0.1), ("semantic", "beta", 0.0),
+      ("semantic", "score_every", 0), ("semantic", "prune_every", 0),
+      ("semantic", "reset_quiet", -1),
+      ("semantic", "oracle_saturation", 0.0), ("semantic", "evidence", "x"),
+      ("semantic", "max_prune_fraction", 0.0),
+      ("semantic", "dense_input_size", 0), ("pixel", "tau_p", 1.5),
+      ("residual", "min_alpha", 1.0), ("residual", "min_share", 1.0),
+      ("residual", "vote", 0.0), ("residual", "uniformity", -0.1),
+      ("residual", "uniform_until", -1), ("residual", "rule", "x"),
+      ("residual", "quantile", 1.0), ("residual", "decay", 1.0))
+  def test_names_the_field(self, section, field, value):
+    sections = {section: {field: value}}
+    sem = ORACLE
+    if section == "semantic":
+      sem, sections = dataclasses.replace(ORACLE, **{field: value}), {}
+    with self.assertRaisesRegex(app.UsageError,
+                                rf"--config\.{section}\.{field}="):
+      self._check(sem, **sections)
+
+  def test_names_an_empty_prompt(self):
+    with self.assertRaisesRegex(app.UsageError,
+                                "--config.semantic: a prompt is empty"):
+      self._check(dataclasses.replace(
+          ORACLE, distractor_prompts=("a photo of a person", " ")))
 
   def test_clip_without_prompts_is_an_error(self):
     # Silently training vanilla 3DGS instead (exit 0) would hide the
@@ -159,10 +192,11 @@ class SemanticCheckTest(parameterized.TestCase):
     # run of its own (BUILD_NOTES.md, "Localized evidence"); without
     # masking it is not.
     alone = dataclasses.replace(ORACLE, evidence="pixel", lambda_c=0.0,
-                                prune=False, loss_masking=True)
-    self.assertEqual(self._check(alone).semantic, alone)
+                                prune=False)
+    self.assertEqual(self._check(alone, pixel={"loss_masking": True}).semantic,
+                     alone)
     with self.assertRaisesRegex(app.UsageError, "leaves guidance nothing"):
-      self._check(dataclasses.replace(alone, loss_masking=False))
+      self._check(alone)
 
   def test_tau_edges_are_valid(self):
     self._check(dataclasses.replace(ORACLE, tau=0.0))
@@ -185,6 +219,14 @@ class ScriptTest(absltest.TestCase):
     self.assertEqual(proc.returncode, 2, proc.stderr)
     self.assertIn("stepz", proc.stderr)
     self.assertIn('Did you mean "steps"', proc.stderr)
+    self.assertNotIn("Traceback", proc.stderr)
+
+  def test_old_name_on_the_command_line(self):
+    proc = self._train("--config.semantic.loss_masking=True")
+    self.assertEqual(proc.returncode, 2, proc.stderr)
+    self.assertEqual(proc.stderr.strip().splitlines()[-1],
+                     "error: --config.semantic.loss_masking is now "
+                     "--config.pixel.loss_masking; use the new name")
     self.assertNotIn("Traceback", proc.stderr)
 
   def test_clip_without_weights(self):

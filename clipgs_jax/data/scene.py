@@ -8,6 +8,7 @@ import jax
 import numpy as np
 
 from clipgs_jax import camera
+from clipgs_jax import config as config_lib
 from clipgs_jax import fileio
 from clipgs_jax.data import colmap
 from clipgs_jax.data import images
@@ -15,7 +16,7 @@ from clipgs_jax.data import images
 # RobustNeRF file-name tokens: `extra` views are clean held-out test views,
 # `clutter` views have distractors, `clean` views are their clean twins.
 _ROBUSTNERF_TOKENS = ("clutter", "extra", "clean")
-TRAIN_SPLITS = ("clutter", "clean")
+TRAIN_SPLITS = config_lib.TRAIN_SPLITS
 # Without RobustNeRF names, every 8th image by name is a test view (the
 # convention of Mip-NeRF 360 and 3DGS), in colmap.natural_key order: the
 # plain sorted order for zero-padded numbers, capture order for 1..N.

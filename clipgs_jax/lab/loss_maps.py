@@ -179,7 +179,7 @@ def loss_map_report(workdir: str, count: int = 3,
         f", evidence={cfg.semantic.evidence!r}: it has no per-pixel map; "
         "pass a run with semantic.evidence=pixel.")
   views = scene.train
-  scorer = guidance.make_scorer(cfg.semantic, scene)
+  scorer = guidance.make_scorer(cfg, scene)
   degree = sh.active_degree(state.step, cfg.densify.sh_degree_every,
                             cfg.gaussians.sh_degree)
   by_stage = (isinstance(scorer, map_sources.ResidualSource)

@@ -66,7 +66,7 @@ def config_changes(workdir: str, cfg: config_lib.Config) -> list[str]:
     return [f"{path} is unreadable ({e})"]
   if not isinstance(saved, dict):
     return [f"{path} is not a config"]
-  wanted = config_lib.to_dict(cfg)
+  saved, wanted = config_lib.migrate(saved), config_lib.to_dict(cfg)
   if not cfg.scene_extent > 0:
     saved.pop("scene_extent", None), wanted.pop("scene_extent")
   saved, wanted = (json.loads(json.dumps(d)) for d in (saved, wanted))
@@ -123,7 +123,7 @@ def check_row_overrides(cd: ml_collections.ConfigDict, rows: list[str],
   """Refuses a command-line override that a row's own override replaces.
 
   A row's overrides win over the base config, command line included, so
-  `--config.semantic.loss_masking=False` would not reach a row that sets
+  `--config.pixel.loss_masking=False` would not reach a row that sets
   it (the residual rows set True): one line naming the row and the key.
   """
   for row in rows:
@@ -173,18 +173,19 @@ def _settings(cfg: config_lib.Config, clip_weights: str | None,
       **table.machine_and_date()}
 
 
-def _short_label(sem: config_lib.SemanticConfig) -> str:
+def _short_label(cfg: config_lib.Config) -> str:
   """A panel title: what a demo row's map needs (run.semantic_label says
   it in full)."""
+  sem = cfg.semantic
   if not sem.enabled:
     return "vanilla 3DGS"
   if sem.scorer in ("oracle", "uniform", "oracle_patch"):
     return "ORACLE-PIXEL (ground truth)" if sem.scorer == "oracle" else (
         sem.scorer.upper())
   name = "dense CLIP" if sem.scorer == "clip" else "residual map"
-  if sem.scorer == "clip" and sem.residual:
+  if sem.scorer == "clip" and cfg.residual.with_semantic:
     name += " + residual"
-  return name + (" + features" if sem.features else "")
+  return name + (" + features" if cfg.residual.features else "")
 
 
 def _demo_outputs(workdir: str, cfgs: dict, metrics: dict) -> dict:
@@ -211,11 +212,11 @@ def _demo_outputs(workdir: str, cfgs: dict, metrics: dict) -> dict:
       workdir, k, run_lib.TEST_RENDERS, stem + ".png")) for k in rows]
   plots.side_by_side(
       renders + [np.asarray(scene.test.images[view])],
-      [f"{_short_label(cfgs[k].semantic)}: {psnr[k][view]:.2f} dB"
+      [f"{_short_label(cfgs[k])}: {psnr[k][view]:.2f} dB"
        for k in rows] + ["ground truth"],
       os.path.join(workdir, "comparison.png"))
   summary = {
-      k: {"label": run_lib.semantic_label(cfgs[k].semantic),
+      k: {"label": run_lib.semantic_label(cfgs[k]),
           "test_psnr": m["test"]["psnr"], "test_ssim": m["test"]["ssim"],
           "test_lpips": m["test"]["lpips"],
           "lpips_net": m["test"]["lpips_net"],

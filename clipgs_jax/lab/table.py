@@ -55,7 +55,7 @@ class RowResult(NamedTuple):
 def row_label(cfg: config_lib.Config) -> str:
   """How a table names a row's run before (or without) its metrics."""
   if cfg.semantic.enabled:
-    return run_lib.semantic_label(cfg.semantic)
+    return run_lib.semantic_label(cfg)
   if cfg.data.train_split == "clean":
     return "3DGS on clean views (upper bound)"
   return "vanilla 3DGS (clutter)"

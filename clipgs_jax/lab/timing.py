@@ -379,26 +379,28 @@ def semantic_overhead(scene_path: str, downscale: int, *,
                             accumulate_start=0, reg_start=0)
   if scene.train.masks is not None:
     cfg = dataclasses.replace(base, semantic=sem)
-    variants["oracle"] = (cfg, guidance.make_scorer(cfg.semantic, scene))
-    cfg = dataclasses.replace(base, semantic=dataclasses.replace(
-        sem, evidence="pixel", loss_masking=True))
-    variants["oracle_pixel"] = (cfg, guidance.make_scorer(cfg.semantic,
-                                                          scene))
+    variants["oracle"] = (cfg, guidance.make_scorer(cfg, scene))
+    cfg = dataclasses.replace(
+        base, semantic=dataclasses.replace(sem, evidence="pixel"),
+        pixel=dataclasses.replace(base.pixel, loss_masking=True))
+    variants["oracle_pixel"] = (cfg, guidance.make_scorer(cfg, scene))
   for name, net in (("residual", ""), ("residual+features", "alex")):
-    cfg = dataclasses.replace(base, semantic=dataclasses.replace(
-        sem, scorer="residual", evidence="pixel", loss_masking=True,
-        features=net))
-    variants[name] = (cfg, guidance.make_scorer(cfg.semantic, scene))
+    cfg = dataclasses.replace(
+        base, semantic=dataclasses.replace(sem, scorer="residual",
+                                           evidence="pixel"),
+        pixel=dataclasses.replace(base.pixel, loss_masking=True),
+        residual=dataclasses.replace(base.residual, features=net))
+    variants[name] = (cfg, guidance.make_scorer(cfg, scene))
   for k in score_every:
     cfg = dataclasses.replace(base, semantic=dataclasses.replace(
         sem, scorer="clip", clip_variant=clip_variant, score_every=k))
     variants[f"clip/k={k}"] = (cfg, guidance.make_scorer(
-        cfg.semantic, scene, clip_params=clip_params))
+        cfg, scene, clip_params=clip_params))
 
   fns, states, compile_s = {}, {}, {}
   for name, (cfg, scorer) in variants.items():
     state = jax.tree.map(jnp.copy, state0)
-    if cfg.semantic.uses_residual:
+    if cfg.uses_residual:
       state = state.replace(maps=residual.ResidualState.initial())
     fn, lanes, state, scorer = step_lib.for_scene(cfg, scene, state, scorer)
     tic = time.perf_counter()

@@ -139,7 +139,7 @@ def load(path: str) -> ViewedRun:
       stats = state_lib.SemanticStats(**{
           f.name: field("semantic/", f.name)[alive]
           for f in dataclasses.fields(state_lib.SemanticStats)})
-    if cfg.semantic.uses_residual:
+    if cfg.uses_residual:
       maps = residual.ResidualState(**{
           f.name: field("maps/", f.name)
           for f in dataclasses.fields(residual.ResidualState)})
@@ -195,18 +195,18 @@ def would_prune(run: ViewedRun, tau: float) -> dict[str, Any]:
   """
   by_score, faint, refused = _would_prune(
       run.stats, run.params.opacity_logits, jnp.float32(tau),
-      sem=run.cfg.semantic)
+      cfg=run.cfg)
   return {"by_score": np.asarray(by_score), "faint": np.asarray(faint),
           "refused": bool(refused)}
 
 
-@functools.partial(jax.jit, static_argnames="sem")
-def _would_prune(stats, opacity_logits, tau, *, sem):
+@functools.partial(jax.jit, static_argnames="cfg")
+def _would_prune(stats, opacity_logits, tau, *, cfg):
   alive = jnp.ones(opacity_logits.shape, bool)
   by_score, faint = semantic.prune_masks(
-      stats, opacity_logits, alive, **guidance.prune_thresholds(sem, tau))
+      stats, opacity_logits, alive, **guidance.prune_thresholds(cfg, tau))
   _, _, refused = semantic.guard_prune(by_score, faint, alive,
-                                       sem.max_prune_fraction)
+                                       cfg.semantic.max_prune_fraction)
   return by_score, faint, refused
 
 
@@ -269,12 +269,12 @@ def transient_map(run: ViewedRun, scene, split: str, index: int
   needs_masks = sem.scorer in ("oracle", "uniform", "oracle_patch")
   if (split != "train" or not sem.localized or sem.scorer == "clip"
       or (needs_masks and masks is None)
-      or (sem.uses_residual and run.maps is None)):
+      or (run.cfg.uses_residual and run.maps is None)):
     return None
   if sem.scorer == "uniform":
     return np.full(masks.shape[1:], np.mean(masks), np.float32)
   one = dataclasses.replace(scene, train=_one_view(scene.train, index))
-  scorer = guidance.make_scorer(sem, one)
+  scorer = guidance.make_scorer(run.cfg, one)
   n = run.params.means.shape[0]
   return evaluation.view_map(run.params, np.ones(n, bool), run.maps, scorer,
                              one.train, 0, run.cfg,

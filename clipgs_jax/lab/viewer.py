@@ -175,7 +175,7 @@ class Viewer:
     self.tau.min, self.tau.max = low, high
     self.tau.step = (high - low) / 1000
     self.tau.precision = int(np.ceil(-np.log10(self.tau.step)))
-    self.tau.value = sem.tau_p if sem.localized else sem.tau
+    self.tau.value = run.cfg.pixel.tau_p if sem.localized else sem.tau
     for handle in (self.by_score, self.tau, self.highlight, self.hide):
       handle.disabled = not guided
     self.show_pruned.disabled = self.pruned_nodes[self.shown] is None

@@ -108,9 +108,9 @@ class AblateTest(absltest.TestCase):
     self.assertEqual(reg.semantic.tau, 0.03)
     self.assertEqual(sweep.row_config(cd, "oracle_prune_only")
                      .semantic.lambda_c, 0.0)
-    uniform = sweep.row_config(cd, "uniform_pixel").semantic
-    self.assertEqual((uniform.scorer, uniform.evidence, uniform.loss_masking),
-                     ("uniform", "pixel", False))
+    uniform = sweep.row_config(cd, "uniform_pixel")
+    self.assertEqual((uniform.semantic.scorer, uniform.semantic.evidence,
+                      uniform.pixel.loss_masking), ("uniform", "pixel", False))
     self.assertIn("UNIFORM control", run_lib.semantic_label(uniform))
     generic = sweep.row_config(cd, "clip_generic")
     self.assertEqual(generic.semantic.distractor_prompts,

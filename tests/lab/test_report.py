@@ -282,9 +282,12 @@ def residual_run(tmp_path_factory):
   scene_path = default_scene.ensure_default_scene()
   scene = scene_lib.load_scene(scene_path, downscale=DOWNSCALE)
   smoke = config_file.named("smoke")
-  cfg = train.resolve(dataclasses.replace(smoke, semantic=dataclasses.replace(
-      smoke.semantic, scorer="residual", evidence="pixel", loss_masking=True,
-      residual_warmup=0.0)), scene)
+  cfg = train.resolve(dataclasses.replace(
+      smoke,
+      semantic=dataclasses.replace(smoke.semantic, scorer="residual",
+                                   evidence="pixel"),
+      pixel=dataclasses.replace(smoke.pixel, loss_masking=True),
+      residual=dataclasses.replace(smoke.residual, warmup=0.0)), scene)
   state = train.initial_state(cfg, scene)
   state = state.replace(maps=state.maps.replace(threshold=jnp.float32(0.1)))
   checkpoint.save(str(workdir / train.CHECKPOINT_NAME), state, cfg, extra={})
@@ -308,7 +311,7 @@ def test_loss_map_report(residual_run):
   degree = np.int32(state.params.sh_degree)
   quality = evaluation.mask_quality(
       state.params, state.alive, state.maps,
-      guidance.make_scorer(cfg.semantic, scene), scene.train, cfg, degree)
+      guidance.make_scorer(cfg, scene), scene.train, cfg, degree)
   for key in ("precision", "recall", "iou"):
     assert out["pooled"][key] == pytest.approx(quality[key])
   # The 3x3 rule and the gates only take pixels away, and the last

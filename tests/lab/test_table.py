@@ -127,15 +127,15 @@ class FormatTest(absltest.TestCase):
   def test_a_flag_a_row_overrides_is_refused(self):
     keys = sweep.command_line_keys(
         ["train.py", "--config=configs/table.py",
-         "--config.semantic.loss_masking=False", "--scene=X"])
-    self.assertEqual(keys, {"semantic.loss_masking"})
+         "--config.pixel.loss_masking=False", "--scene=X"])
+    self.assertEqual(keys, {"pixel.loss_masking"})
     cd = _table_cd()
-    cd.semantic.loss_masking = False   # as the flag leaves it
+    cd.pixel.loss_masking = False   # as the flag leaves it
     sweep.check_row_overrides(cd, ["vanilla", "clean"], keys)
     with self.assertRaisesRegex(app.UsageError,
                                 "does not reach row 'residual'"):
       sweep.check_row_overrides(cd, ["vanilla", "residual"], keys)
-    cd.semantic.loss_masking = True    # the row's own value: no conflict
+    cd.pixel.loss_masking = True    # the row's own value: no conflict
     sweep.check_row_overrides(cd, ["residual"], keys)
 
   def test_row_configs(self):
@@ -154,7 +154,7 @@ class FormatTest(absltest.TestCase):
                      config.SemanticConfig(
                          scorer="oracle").scaled_to(bench.train.steps))
     self.assertEqual(cfgs["oracle_pixel_masked"].semantic.evidence, "pixel")
-    self.assertTrue(cfgs["oracle_pixel_masked"].semantic.loss_masking)
+    self.assertTrue(cfgs["oracle_pixel_masked"].pixel.loss_masking)
     self.assertEqual(cfgs["clip_pixel"].semantic.scorer, "clip")
     # The residual rows: the residual map (with feature regions, or gated
     # by a semantic map) and loss masking, with the benchmark's loss (L1 +
@@ -163,15 +163,16 @@ class FormatTest(absltest.TestCase):
                      "clip_residual", "residual_clean",
                      "residual_features_clean")
     for row in residual_rows:
-      self.assertTrue(cfgs[row].semantic.uses_residual, row)
-      self.assertTrue(cfgs[row].semantic.loss_masking, row)
-    self.assertEqual(cfgs["residual_features"].semantic.features, "alex")
+      self.assertTrue(cfgs[row].uses_residual, row)
+      self.assertTrue(cfgs[row].pixel.loss_masking, row)
+    self.assertEqual(cfgs["residual_features"].residual.features, "alex")
     self.assertEqual(cfgs["oracle_patch_residual"].semantic.scorer,
                      "oracle_patch")
     self.assertEqual(cfgs["residual_features_clean"].data.train_split,
                      "clean")
-    self.assertEqual(cfgs["residual_features_clean"].semantic,
-                     cfgs["residual_features"].semantic)
+    for section in ("semantic", "pixel", "residual"):
+      self.assertEqual(getattr(cfgs["residual_features_clean"], section),
+                       getattr(cfgs["residual_features"], section))
     for row, cfg in cfgs.items():   # everything else is the benchmark's
       self.assertEqual(cfg.render, bench.render)
       self.assertEqual(cfg.train, bench.train)
@@ -185,30 +186,31 @@ class FormatTest(absltest.TestCase):
         os.path.join(config_file.CONFIGS_DIR, "demo.py"))
     gated = sweep.row_config(
         demo, "residual", None,
-        **demo.sweep.clip_overrides.residual.to_dict()).semantic
+        **demo.sweep.clip_overrides.residual.to_dict())
     self.assertIn("gating the residual map (sls, alex feature regions)",
                   run_lib.semantic_label(gated))
     self.assertIn("residual map (sls, alex feature regions, no weights",
-                  run_lib.semantic_label(
-                      _row_cfg("residual_features").semantic))
+                  run_lib.semantic_label(_row_cfg("residual_features")))
+    self.assertNotIn("regions", run_lib.semantic_label(_row_cfg("residual")))
     self.assertNotIn("regions", run_lib.semantic_label(
-        _row_cfg("residual").semantic))
-    self.assertNotIn("regions", run_lib.semantic_label(
-        _row_cfg("oracle_patch_residual").semantic))
+        _row_cfg("oracle_patch_residual")))
     # A vote share other than SLS-agg's majority is a different row.
-    self.assertNotIn("masked at", run_lib.semantic_label(
-        _row_cfg("residual_features").semantic))
-    strict = dataclasses.replace(_row_cfg("residual_features").semantic,
-                                 residual_vote=0.7)
+    features = _row_cfg("residual_features")
+    self.assertNotIn("masked at", run_lib.semantic_label(features))
+
+    def with_residual(**fields):
+      return dataclasses.replace(features, residual=dataclasses.replace(
+          features.residual, **fields))
+    strict = with_residual(vote=0.7)
     self.assertIn("alex feature regions masked at 0.7 failing",
                   run_lib.semantic_label(strict))
     # So is an early uniformity gate other than the default's 0.35.
     self.assertNotIn("even", run_lib.semantic_label(strict))
-    looser = dataclasses.replace(strict, residual_uniformity=0.5)
     self.assertIn("failing, early only where even (std / mean < 0.5)",
-                  run_lib.semantic_label(looser))
+                  run_lib.semantic_label(with_residual(vote=0.7,
+                                                       uniformity=0.5)))
     self.assertIn("failing, no early uniformity gate", run_lib.semantic_label(
-        dataclasses.replace(strict, residual_uniformity=0.0)))
+        with_residual(vote=0.7, uniformity=0.0)))
 
 
 class ConfigChangesTest(absltest.TestCase):
@@ -225,11 +227,16 @@ class ConfigChangesTest(absltest.TestCase):
         cfg, train=dataclasses.replace(cfg.train, seed=7))),
                      [f"train.seed: {cfg.train.seed} -> 7"])
     # A field the run's config lacks: the run did not have it.
-    del stored["semantic"]["residual_min_alpha"]
+    del stored["residual"]["min_alpha"]
     fileio.write_json(path, stored)
     self.assertEqual(sweep.config_changes(folder, cfg), [
-        "semantic.residual_min_alpha: None -> "
-        f"{cfg.semantic.residual_min_alpha}"])
+        f"residual.min_alpha: None -> {cfg.residual.min_alpha}"])
+    # A run written with the old names (config.RENAMED) is the same run.
+    stored = config.to_dict(cfg)
+    stored["semantic"]["residual_min_alpha"] = stored["residual"].pop(
+        "min_alpha")
+    fileio.write_json(path, stored)
+    self.assertEqual(sweep.config_changes(folder, cfg), [])
     with open(path, "w") as f:
       f.write("[1, 2]")
     self.assertIn("is not a config", sweep.config_changes(folder, cfg)[0])
@@ -317,12 +324,12 @@ class EndToEndTest(absltest.TestCase):
       with open(os.path.join(root, row, "config.json")) as f:
         cfg = cfg_of[row] = json.load(f)
       self.assertEqual(cfg["train"]["checkpoint_every"], 10)
-      self.assertTrue(cfg["semantic"]["loss_masking"])
+      self.assertTrue(cfg["pixel"]["loss_masking"])
       scorers[row] = cfg["semantic"]["scorer"]
     self.assertEqual(scorers, {"residual": "residual",
                                "oracle_pixel_masked": "oracle"})
     # The table's best row that needs only the photos: regions voted.
-    self.assertEqual(cfg_of["residual"]["semantic"]["features"], "alex")
+    self.assertEqual(cfg_of["residual"]["residual"]["features"], "alex")
     # One row (it used to stop with an IndexError after training): its
     # finished run is not trained again, and the comparison shows it alone.
     cd.sweep.rows = "residual"

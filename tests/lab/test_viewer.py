@@ -198,11 +198,11 @@ def test_viewer_panel_in_process(guided_run):
     def flagged(tau):
       out = viewed_run.would_prune(run, tau)
       return ~np.bool_(out["refused"]) & (out["by_score"] | out["faint"])
-    node, low_tau = view.nodes[0], 0.6 * run.cfg.semantic.tau_p
+    node, low_tau = view.nodes[0], 0.6 * run.cfg.pixel.tau_p
     view.highlight.value = True
     at_run_tau = node.rgbs.copy()
     view.tau.value = low_tau
-    moved = flagged(low_tau) != flagged(run.cfg.semantic.tau_p)
+    moved = flagged(low_tau) != flagged(run.cfg.pixel.tau_p)
     assert moved.sum() > 0
     np.testing.assert_array_equal(np.any(node.rgbs != at_run_tau, axis=1),
                                   moved)
@@ -225,8 +225,10 @@ def test_residual_transient_map(guided_run):
   at the threshold it ended with, as its whole-scene scorer gives it."""
   run = viewed_run.load(guided_run)
   # Without the alpha gate, so that a zero threshold masks every pixel.
-  cfg = dataclasses.replace(run.cfg, semantic=dataclasses.replace(
-      run.cfg.semantic, scorer="residual", residual_min_alpha=0.0))
+  cfg = dataclasses.replace(
+      run.cfg,
+      semantic=dataclasses.replace(run.cfg.semantic, scorer="residual"),
+      residual=dataclasses.replace(run.cfg.residual, min_alpha=0.0))
   scene = viewed_run.load_scene(run)
   index = 1
   photo = scene.train.images[index]
@@ -238,7 +240,7 @@ def test_residual_transient_map(guided_run):
   shown = viewed_run.transient_map(run, scene, "train", index)
   expected = evaluation.view_map(
       run.params, np.ones(len(run.params.means), bool), run.maps,
-      guidance.make_scorer(cfg.semantic, scene), scene.train, index, cfg,
+      guidance.make_scorer(cfg, scene), scene.train, index, cfg,
       np.int32(run.degree))
   np.testing.assert_array_equal(shown, expected)
   assert 0.05 < shown.mean() < 0.95, shown.mean()
