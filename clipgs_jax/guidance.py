@@ -163,15 +163,17 @@ def make_scorer(cfg: config_lib.Config, scene, *,
             np.prod(sizes, axis=-1), jnp.float32))
   # Only here is CLIP imported.
   from clipgs_jax.clip import scorer as clip_scorer  # pylint: disable=g-import-not-at-top
+  from clipgs_jax.clip import weights  # pylint: disable=g-import-not-at-top
+  if clip_params is None:
+    clip_params = weights.load(weights.resolve_weights_path(clip_weights),
+                               sem.clip_variant)
   if sem.localized:
-    dense = clip_scorer.make_dense(sem, weights_path=clip_weights,
-                                   clip_params=clip_params,
+    dense = clip_scorer.make_dense(sem, clip_params,
                                    input_size=sem.dense_input_size)
     return _pixel_source(
         dense_maps(dense, scene.train.images,
                    getattr(scene.train, "sizes", None)), cfg.residual, scene)
-  return clip_scorer.make(sem, weights_path=clip_weights,
-                          clip_params=clip_params)
+  return clip_scorer.make(sem, clip_params)
 
 
 def _pixel_source(maps: jax.Array, rc: config_lib.ResidualConfig, scene):

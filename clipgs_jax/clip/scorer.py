@@ -16,7 +16,6 @@ from clipgs_jax import semantic
 from clipgs_jax.clip import dense
 from clipgs_jax.clip import model
 from clipgs_jax.clip import preprocess
-from clipgs_jax.clip import weights
 
 
 @flax.struct.dataclass
@@ -48,23 +47,17 @@ class ClipScorer:
             "s_hat_s": s_hat_s}
 
 
-def make(sem: config_lib.SemanticConfig, *, weights_path: str | None = None,
-         clip_params: tuple[model.ClipConfig, Any] | None = None
-         ) -> ClipScorer:
-  """Loads the tower (or takes `clip_params`) and embeds the prompts once.
+def make(sem: config_lib.SemanticConfig,
+         clip_params: tuple[model.ClipConfig, Any]) -> ClipScorer:
+  """The image-level scorer of the tower, its prompts embedded once.
 
   Args:
-    sem: prompts and the variant (sem.clip_variant).
-    weights_path: --clip_weights; unset falls back to $CLIPGS_CLIP_WEIGHTS,
-      and neither set raises a ValueError that says how to give weights.
-    clip_params: (ClipConfig, params) instead of a file (random weights
-      for timing, tests).
+    sem: the prompts.
+    clip_params: (ClipConfig, params): weights.load's (guidance.make_scorer
+      loads them once for either scorer), or random weights for timing and
+      tests.
   """
-  if clip_params is None:
-    config, params = weights.load(weights.resolve_weights_path(weights_path),
-                                  sem.clip_variant)
-  else:
-    config, params = clip_params
+  config, params = clip_params
   texts = model.TextEmbeddingCache(params, config)
   distractor = texts(sem.distractor_prompts)
   static = (texts(sem.static_prompts) if sem.static_prompts else
@@ -137,18 +130,15 @@ class DenseClipScorer:
     return dense.upsample(self.patch_probabilities(image), h, w)
 
 
-def make_dense(sem: config_lib.SemanticConfig, *,
-               weights_path: str | None = None,
-               clip_params: tuple[model.ClipConfig, Any] | None = None,
+def make_dense(sem: config_lib.SemanticConfig,
+               clip_params: tuple[model.ClipConfig, Any], *,
                input_size: int = DENSE_INPUT_SIZE,
                readout: str = dense.DEFAULT_READOUT) -> DenseClipScorer:
-  """Loads the tower (or takes `clip_params`) and embeds the prompts once.
+  """The dense scorer of the tower, its prompts embedded once.
 
   Args:
-    sem: prompts and the variant (sem.clip_variant).
-    weights_path: --clip_weights; unset falls back to $CLIPGS_CLIP_WEIGHTS.
-    clip_params: (ClipConfig, params) instead of a file (random weights
-      for timing, tests).
+    sem: the prompts.
+    clip_params: (ClipConfig, params), as `make`'s.
     input_size: side of the CLIP input, a multiple of the patch size
       (448: a 14 x 14 grid for ViT-B/32).
     readout: one of dense.READOUTS.
@@ -166,11 +156,7 @@ def make_dense(sem: config_lib.SemanticConfig, *,
         f"D={tuple(sem.distractor_prompts)}, "
         f"S={tuple(sem.static_prompts)}; give at least one of each.")
   dense.check_readout(readout)
-  if clip_params is None:
-    config, params = weights.load(weights.resolve_weights_path(weights_path),
-                                  sem.clip_variant)
-  else:
-    config, params = clip_params
+  config, params = clip_params
   dense.check_input_size(input_size, config)
   texts = model.TextEmbeddingCache(params, config)
   return DenseClipScorer(
