@@ -265,6 +265,7 @@ class DataConfig:
   scene: str | None = None     # folder or .npz pack; None = embedded scene
   downscale: int = 1           # image downscale factor (1: full size)
   train_split: str = "clutter"  # RobustNeRF: clutter views or clean twins
+  background: str = "white"    # behind photos with alpha: white or black
 
 
 @dataclasses.dataclass(frozen=True)
