@@ -12,16 +12,10 @@ from clipgs_jax import camera
 from clipgs_jax import fileio
 from clipgs_jax.data import colmap
 from clipgs_jax.data import images
+from clipgs_jax.data import splits
 from clipgs_jax.data import transforms
 
-# RobustNeRF file-name tokens: `extra` views are clean held-out test views,
-# `clutter` views have distractors, `clean` views are their clean twins.
-_ROBUSTNERF_TOKENS = ("clutter", "extra", "clean")
-TRAIN_SPLITS = ("clutter", "clean")
-# Without RobustNeRF names, every 8th image by name is a test view (the
-# convention of Mip-NeRF 360 and 3DGS), in colmap.natural_key order: the
-# plain sorted order for zero-padded numbers, capture order for 1..N.
-TEST_EVERY = 8
+TRAIN_SPLITS = splits.TRAIN_SPLITS     # the values of data.train_split
 # 3DGS's "cameras_extent": camera-centre radius with a 10% margin.
 EXTENT_MARGIN = 1.1
 MASK_THRESHOLD = 0.5
@@ -188,51 +182,6 @@ def subset(views: Views, ids) -> Views:
                names=tuple(views.names[i] for i in ids),
                masks=take(views.masks), sizes=take(views.sizes),
                ids=ids if views.ids is None else views.ids[ids])
-
-
-def _name_tokens(names) -> list[list[str]]:
-  """The RobustNeRF split words in each image's file name."""
-  return [[t for t in _ROBUSTNERF_TOKENS if t in os.path.basename(n)]
-          for n in names]
-
-
-def _split_names(names, train_split: str, sparse_dir: str, test_views=None):
-  """(train indices, test indices) into `names` (colmap.Model order);
-  `test_views` (colmap.Model.test_views) is the capture's own split."""
-  if test_views is not None:
-    test = sorted(test_views)
-    train = [i for i in range(len(names)) if i not in set(test)]
-    if not train or not test:
-      raise ValueError(f"{sparse_dir} and its test file give "
-                       f"{len(train)} training and {len(test)} test views; "
-                       "both splits need views.")
-    return train, test
-  tokens = _name_tokens(names)
-  if any(tokens):
-    # RobustNeRF naming: every image must say which split it belongs to.
-    for name, found in zip(names, tokens):
-      if len(found) != 1:
-        raise ValueError(
-            f"image {name} in {sparse_dir} has {found or 'none'} of the "
-            f"RobustNeRF split words {_ROBUSTNERF_TOKENS} in its name, "
-            "expected exactly one; rename it.")
-    test = [i for i, t in enumerate(tokens) if t[0] == "extra"]
-    train = [i for i, t in enumerate(tokens) if t[0] == train_split]
-    if not test:
-      raise ValueError(f"no test views in {sparse_dir}: RobustNeRF names "
-                       "found but no image name contains 'extra'; add clean "
-                       "held-out 'extra' views.")
-    if not train:
-      raise ValueError(f"no training views in {sparse_dir}: no image name "
-                       f"contains {train_split!r}; pick another train_split.")
-    return train, test
-  test = list(range(0, len(names), TEST_EVERY))
-  train = [i for i in range(len(names)) if i % TEST_EVERY]
-  if not train:
-    raise ValueError(f"no training views in {sparse_dir}: only {len(names)} "
-                     f"registered image(s), every {TEST_EVERY}th is held out "
-                     "for testing; register more images.")
-  return train, test
 
 
 def _mask_path(scene_path: str, name: str) -> str:
@@ -404,7 +353,7 @@ def _load_folder(model: colmap.Model, path: str, downscale: int,
                  train_views: Callable[[int], bool] | None,
                  background: str) -> Scene:
   """`load_scene` of the folder scene `path` whose model is `model`."""
-  train_idx, test_idx = _split_names(model.names, train_split,
+  train_idx, test_idx = splits.split(model.names, train_split,
                                      model.sparse_dir, model.test_views)
   keep = None if train_views is None else {
       k for k in range(len(train_idx)) if train_views(k)}
@@ -444,13 +393,6 @@ def _stack(cams: list[camera.Camera]) -> camera.Camera:
   return camera.Camera(
       **{k: np.stack([getattr(c, k) for c in cams]) for k in _CAMERA_FIELDS},
       width=max(c.width for c in cams), height=max(c.height for c in cams))
-
-
-def _train_splits(model: colmap.Model) -> tuple[str, ...]:
-  """The train splits of a folder scene: those named in a RobustNeRF one,
-  () for other scenes (their train_split is ignored)."""
-  tokens = _name_tokens(model.names)
-  return tuple(t for t in TRAIN_SPLITS if any(t in found for found in tokens))
 
 
 def _views_arrays(prefix: str, views: Views) -> dict[str, np.ndarray]:
@@ -493,13 +435,13 @@ def pack(path: str, out: str, downscale: int,
   check_background(background)
   cache_dir = cache_dir or colmap.default_cache_dir(path)
   model = _load_model(path, cache_dir)   # read once
-  splits = _train_splits(model)
+  named = splits.train_splits(model.names)
   arrays = {"format": np.array(PACK_FORMAT), "downscale": np.array(downscale),
-            "splits": np.array(splits, dtype=str)}
-  for split in splits or TRAIN_SPLITS[:1]:
+            "splits": np.array(named, dtype=str)}
+  for split in named or TRAIN_SPLITS[:1]:
     scene = _load_folder(model, path, downscale, split, cache_dir, None,
                          background)
-    arrays |= _views_arrays(f"train.{split if splits else 'all'}",
+    arrays |= _views_arrays(f"train.{split if named else 'all'}",
                             scene.train)
   arrays |= _views_arrays("test", scene.test)
   arrays |= {"points": scene.points, "point_colors": scene.point_colors}
@@ -507,7 +449,7 @@ def pack(path: str, out: str, downscale: int,
     arrays["background"] = np.array(background)
   fileio.atomic_write(out, lambda tmp: np.savez_compressed(tmp, **arrays),
                       PACK_SUFFIX)
-  return splits
+  return named
 
 
 def _read_views(data, prefix: str, path: str) -> Views:
@@ -549,9 +491,10 @@ def _load_pack(path: str, downscale: int, train_split: str,
     raise ValueError(f"scene pack {path} holds downscale {packed}, not "
                      f"{downscale}; pass --config.data.downscale={packed} or "
                      f"pack the scene again with --downscale={downscale}.")
-  splits = tuple(str(s) for s in data["splits"])
-  if splits and train_split not in splits:
-    raise ValueError(f"scene pack {path} has the train split(s) {splits}, "
+  packed_splits = tuple(str(s) for s in data["splits"])
+  if packed_splits and train_split not in packed_splits:
+    raise ValueError(f"scene pack {path} has the train split(s) "
+                     f"{packed_splits}, "
                      f"not {train_split!r}; pack a scene that has it.")
   packed_background = data.get("background")
   if packed_background is not None and str(packed_background) != background:
@@ -560,7 +503,8 @@ def _load_pack(path: str, downscale: int, train_split: str,
                      f"--config.data.background={packed_background} or pack "
                      f"the scene again with --background={background}.")
   # Without RobustNeRF names train_split is ignored, as for the folder.
-  train = _read_views(data, f"train.{train_split if splits else 'all'}", path)
+  train = _read_views(
+      data, f"train.{train_split if packed_splits else 'all'}", path)
   cams = train.cameras
   if train_views is not None:
     train = subset(train, [k for k in range(len(train)) if train_views(k)])
