@@ -118,6 +118,11 @@ def orbit(cams: camera_lib.Camera, n: int) -> camera_lib.Camera:
   _, _, basis = np.linalg.svd(centers - mean, full_matrices=False)
   uv = (centers - mean) @ basis[:2].T                           # [V, 2]
   radii = np.sqrt(2.0) * uv.std(0)
+  if radii[0] <= 1e-9 * max(1.0, np.abs(mean).max()):
+    raise ValueError("--path=orbit: the training cameras share one position, "
+                     "so no orbit fits them; pass --path=train")
+  # Cameras on a line give a flat ellipse: the orbit runs along it.
+  radii = np.maximum(radii, 1e-6 * radii[0])
   angles = np.unwrap(np.arctan2(uv[:, 1] / radii[1], uv[:, 0] / radii[0]))
   turn = 1.0 if angles[-1] >= angles[0] else -1.0
   theta = angles[0] + turn * 2 * np.pi * np.arange(n) / n      # [n]

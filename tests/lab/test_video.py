@@ -48,6 +48,14 @@ def test_orbit_fits_the_ring_of_cameras():
   assert np.all(-np.asarray(path.rotation)[:, 1, 2] > 0)
 
 
+def test_orbit_of_cameras_on_a_line_or_at_one_point():
+  ring = _ring(4)
+  line = video.orbit(_stack([ring[0], ring[2]]), 8)
+  assert np.all(np.isfinite(np.asarray(line.translation)))
+  with pytest.raises(ValueError, match="share one position"):
+    video.orbit(_stack([ring[0], ring[0]]), 8)
+
+
 def test_through_passes_every_camera():
   cams = _stack(_ring(5)[:4])
   path = video.through(cams, 3 * 3 + 1)   # 3 frames per gap
