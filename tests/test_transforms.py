@@ -25,7 +25,7 @@ SIZE = (32, 24)
 _FLIP = np.diag([1.0, -1.0, -1.0])
 
 
-def _ring(n: int, radius: float = 3.0) -> list[camera.Camera]:
+def ring(n: int, radius: float = 3.0) -> list[camera.Camera]:
   """n cameras on a ring around the origin, looking at it."""
   return [camera.look_at(
       [radius * np.cos(a), radius * np.sin(a), 1.0], [0, 0, 0], [0, 0, 1],
@@ -47,7 +47,7 @@ def write_transforms(root, n=9, *, name="transforms.json", first=0,
   Photo i is red where its alpha is 1 (left half), transparent elsewhere.
   Returns the cameras.
   """
-  cams = _ring(n + first)[first:]
+  cams = ring(n + first)[first:]
   os.makedirs(os.path.join(root, "frames"), exist_ok=True)
   frames = []
   for i, cam in enumerate(cams, first):
@@ -124,12 +124,13 @@ def test_pack_keeps_the_background(tmp_path):
   scene_lib.pack(str(tmp_path), out, 1, cache_dir=str(tmp_path / "cache"))
   packed = scene_lib.load_scene(out)
   assert packed.background == (1.0, 1.0, 1.0)
-  np.testing.assert_array_equal(packed.train.images, _load(tmp_path).train.images)
+  np.testing.assert_array_equal(packed.train.images,
+                                _load(tmp_path).train.images)
   with pytest.raises(ValueError, match="--config.data.background=white"):
     scene_lib.load_scene(out, background="black")
 
 
-_RIGID = _opengl_matrix(_ring(1)[0])
+_RIGID = _opengl_matrix(ring(1)[0])
 _SCALED = (np.array(_RIGID) * [[2], [2], [2], [1]]).tolist()
 
 

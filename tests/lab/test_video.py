@@ -21,8 +21,7 @@ from clipgs_jax import run as run_lib
 from clipgs_jax import train
 from clipgs_jax.data import scene as scene_lib
 from clipgs_jax.lab import video
-from test_transforms import _ring  # pylint: disable=g-bad-import-order
-from test_transforms import write_transforms  # pylint: disable=g-bad-import-order
+import test_transforms  # pylint: disable=g-bad-import-order
 
 
 def _stack(cams):
@@ -30,7 +29,8 @@ def _stack(cams):
 
 
 def test_orbit_fits_the_ring_of_cameras():
-  cams = _stack(_ring(12))            # radius 3 at height 1, facing (0,0,0)
+  # Radius 3 at height 1, facing (0, 0, 0).
+  cams = _stack(test_transforms.ring(12))
   path = video.orbit(cams, 24)
   centres = camera.camera_center(path)
   np.testing.assert_allclose(np.linalg.norm(centres[:, :2], axis=1), 3.0,
@@ -49,7 +49,7 @@ def test_orbit_fits_the_ring_of_cameras():
 
 
 def test_orbit_of_cameras_on_a_line_or_at_one_point():
-  ring = _ring(4)
+  ring = test_transforms.ring(4)
   line = video.orbit(_stack([ring[0], ring[2]]), 8)
   assert np.all(np.isfinite(np.asarray(line.translation)))
   with pytest.raises(ValueError, match="share one position"):
@@ -57,7 +57,7 @@ def test_orbit_of_cameras_on_a_line_or_at_one_point():
 
 
 def test_through_passes_every_camera():
-  cams = _stack(_ring(5)[:4])
+  cams = _stack(test_transforms.ring(5)[:4])
   path = video.through(cams, 3 * 3 + 1)   # 3 frames per gap
   for k in range(4):
     key = camera.camera_at(cams, k)
@@ -74,7 +74,7 @@ def _fake_run(root, name="run", scene_dir=None) -> str:
   what video.py reads from a finished run, without training."""
   scene_dir = scene_dir or os.path.join(root, "scene")
   if not os.path.isdir(scene_dir):
-    write_transforms(scene_dir, 5)
+    test_transforms.write_transforms(scene_dir, 5)
   scene = scene_lib.load_scene(scene_dir)
   cfg = config.Config(
       gaussians=config.GaussiansConfig(sh_degree=0, min_capacity=64,
@@ -170,8 +170,10 @@ def test_bad_inputs_end_in_one_line_before_any_load(tmp_path, kwargs, says):
 
 def test_a_path_needs_two_cameras(tmp_path):
   scene_dir = str(tmp_path / "scene")
-  write_transforms(scene_dir, 3, name="transforms_train.json")
-  write_transforms(scene_dir, 1, name="transforms_test.json", first=3)
+  test_transforms.write_transforms(scene_dir, 3,
+                                   name="transforms_train.json")
+  test_transforms.write_transforms(scene_dir, 1, name="transforms_test.json",
+                                   first=3)
   run = _fake_run(str(tmp_path), scene_dir=scene_dir)
   line = _one_line(lambda: video.write(video.plan(
       run, None, "test", 1.0, 5.0, str(tmp_path / "v.mp4")), progress=False))
