@@ -5,8 +5,13 @@ Conventions, stated once for the whole package:
   * Camera axes: +x right, +y down, +z forward (into the scene).
   * Pixels: (u, v) = (fx * x / z + cx, fy * y / z + cy), in pixels, with the
     centre of pixel (row i, column j) at (j + 0.5, i + 0.5). COLMAP uses the
-    same convention, so its intrinsics are used unchanged.
+    same convention, so its intrinsics are used unchanged; so do the
+    transforms.json files of instant-ngp and nerfstudio (fl_x, cx, ...).
   * Images are row-major [height, width, channels].
+  * transforms.json (NeRF-synthetic, instant-ngp, nerfstudio) stores
+    camera-to-world matrices in the OpenGL/Blender axes (+x right, +y up,
+    +z backward: the camera looks down -z); `from_opengl_camera_to_world`
+    is the one conversion.
 """
 
 from typing import Any
@@ -15,6 +20,12 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+# OpenGL camera axes in ours: x stays, y (up) and z (backward) flip.
+_OPENGL_AXES = np.diag([1.0, -1.0, -1.0])
+# Largest |R R^T - I| entry accepted as a rotation (float32 poses written
+# with 6-7 digits are orthonormal to ~1e-6; a scale or shear is far above).
+ROTATION_TOLERANCE = 1e-3
 
 
 @flax.struct.dataclass
@@ -90,9 +101,24 @@ def validate(cam: Camera, name: str = "camera") -> None:
       raise ValueError(f"{name}.{field} must be positive, got "
                        f"{float(np.asarray(getattr(cam, field)))}.")
   rot = np.asarray(cam.rotation, np.float64)
-  if np.abs(rot @ rot.T - np.eye(3)).max() > 1e-3:
+  if np.abs(rot @ rot.T - np.eye(3)).max() > ROTATION_TOLERANCE:
     raise ValueError(f"{name}.rotation is not a rotation matrix "
                      "(R @ R.T != I); pass a world-to-camera rotation.")
+
+
+def from_opengl_camera_to_world(matrix) -> tuple[np.ndarray, np.ndarray]:
+  """World-to-camera (R [3, 3], t [3]), float64, of an OpenGL camera.
+
+  Args:
+    matrix: float [4, 4] (or [3, 4]), a rigid camera-to-world transform in
+      the OpenGL axes (transforms.json's `transform_matrix`); the caller
+      checks that it is rigid.
+  """
+  m = np.asarray(matrix, np.float64)
+  # Columns of the camera-to-world rotation are the camera axes in the
+  # world; flipping y and z gives ours, and R is its transpose.
+  rotation = (m[:3, :3] @ _OPENGL_AXES).T
+  return rotation, -rotation @ m[:3, 3]
 
 
 def camera_at(cameras: Camera, i) -> Camera:

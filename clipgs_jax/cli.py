@@ -2,6 +2,7 @@
 
 import contextlib
 import errno
+import logging
 import os
 import shutil
 import sys
@@ -37,6 +38,11 @@ _OS_FIXES = {
 }
 _DEBUG_FLAG = "debug"
 _DEBUG_ALIAS = "verbose"
+# JAX logs the accelerator backends it could not start ("Unable to
+# initialize backend 'tpu'") when a script first touches a device: a note
+# about the machine, not the run, and the first line a user would read.
+# Shown with --debug or an explicit --verbosity.
+_BACKEND_LOGGER = "jax._src.xla_bridge"
 
 
 def error_line(e: BaseException) -> str:
@@ -83,6 +89,7 @@ def guarded(main: Callable[[list[str]], Any]) -> Callable[[list[str]], Any]:
   Other exceptions are bugs and keep their traceback.
   """
   def wrapped(argv):
+    _quiet_backend_notices()
     try:
       return main(argv)
     except app.UsageError as e:
@@ -90,6 +97,13 @@ def guarded(main: Callable[[list[str]], Any]) -> Callable[[list[str]], Any]:
     except USER_ERRORS as e:
       report(e, EXIT_ERROR)
   return wrapped
+
+
+def _quiet_backend_notices() -> None:
+  """Hides JAX's backend notices unless --debug or --verbosity is given."""
+  verbosity = "verbosity" in flags.FLAGS and flags.FLAGS["verbosity"].present
+  level = logging.NOTSET if _debug() or verbosity else logging.ERROR
+  logging.getLogger(_BACKEND_LOGGER).setLevel(level)
 
 
 def _parse_flags(argv: list[str]) -> list[str]:

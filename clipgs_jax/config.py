@@ -363,6 +363,8 @@ class ResidualConfig:
 
 # RobustNeRF's training splits: the views with clutter, or their clean twins.
 TRAIN_SPLITS = ("clutter", "clean")
+# The colours photos with an alpha channel are composited onto.
+BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -371,6 +373,7 @@ class DataConfig:
   scene: str | None = None     # folder or .npz pack; None = embedded scene
   downscale: int = 1           # image downscale factor (1: full size)
   train_split: str = "clutter"  # RobustNeRF: clutter views or clean twins
+  background: str = "white"    # behind photos with alpha: white or black
 
   def problems(self) -> list[str]:
     out = []
@@ -380,6 +383,9 @@ class DataConfig:
     if self.train_split not in TRAIN_SPLITS:
       out.append(f"train_split={self.train_split} is not one of "
                  f"{', '.join(TRAIN_SPLITS)}")
+    if self.background not in BACKGROUNDS:
+      out.append(f"background={self.background} is not one of "
+                 f"{', '.join(BACKGROUNDS)}")
     return out
 
 

@@ -31,6 +31,17 @@ def _render_fn(render_cfg: config_lib.RenderConfig):
   return jax.jit(fn)
 
 
+def render_camera(params: gaussians.GaussianParams, alive,
+                  cam: camera_lib.Camera, cfg: config_lib.Config
+                  ) -> jax.Array:
+  """float32 [H, W, 3]: one camera's render with all SH bands on
+  cfg.train.background, clipped to [0, 1]; one compile per image size."""
+  cam = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), cam)
+  return _render_fn(cfg.render)(
+      params, alive, cam, jnp.asarray(cfg.train.background, jnp.float32),
+      jnp.asarray(params.sh_degree, jnp.int32))[0]
+
+
 def renders(params: gaussians.GaussianParams, alive, views,
             cfg: config_lib.Config) -> Iterator[tuple[jax.Array, ...]]:
   """Renders each view of `views` with all SH bands on cfg.train.background.

@@ -6,6 +6,7 @@ the artefacts' names. Every file is written atomically (temp file +
 rename).
 """
 
+import dataclasses
 import datetime
 import json
 import os
@@ -101,7 +102,8 @@ def load_run(workdir: str):
   run = read_json(os.path.join(workdir, RUN_JSON), "scene and downscale")
   cfg = load_config(workdir)
   scene = scene_lib.load_scene(run["scene"], downscale=run["downscale"],
-                               train_split=run.get("train_split", "clutter"))
+                               train_split=run.get("train_split", "clutter"),
+                               background=cfg.data.background)
   return run, cfg, scene
 
 
@@ -240,6 +242,7 @@ def train_and_evaluate(cfg: config_lib.Config, workdir: str, *,
   Raises:
     app.UsageError: the scorer cannot be built (no masks, no weights).
   """
+  check_inputs(cfg, clip_weights)
   workdir = os.path.abspath(workdir)
   ckpt_path = os.path.join(workdir, train.CHECKPOINT_NAME)
   resuming = resume and os.path.exists(ckpt_path)
@@ -250,8 +253,9 @@ def train_and_evaluate(cfg: config_lib.Config, workdir: str, *,
                 else cfg.data.scene)
   scene = scene_lib.load_scene(scene_path, downscale=cfg.data.downscale,
                                train_split=cfg.data.train_split,
-                               train_views=_held_views(cfg))
-  cfg = train.resolve(cfg, scene)
+                               train_views=_held_views(cfg),
+                               background=cfg.data.background)
+  cfg = train.resolve(_with_scene_background(cfg, scene), scene)
   if resuming:
     checkpoint.check_resumable(ckpt_path, cfg)
   height, width = scene.train.images.shape[1:3]
@@ -277,6 +281,42 @@ def train_and_evaluate(cfg: config_lib.Config, workdir: str, *,
   with cli.output_dir(workdir, keep=train.CHECKPOINT_NAME):
     return _train_into(cfg, scene, workdir, scorer=scorer, resume=resume,
                        progress=progress, run_info=info)
+
+
+def check_inputs(cfg: config_lib.Config, clip_weights: str | None) -> None:
+  """The checks of a run's inputs that read no scene, photo or weights:
+  run first, so that their error is the only line a bad command prints.
+
+  Raises:
+    app.UsageError: data.background is no BACKGROUNDS name, or a CLIP
+      scorer has no weights (flag or environment) or they do not exist.
+  """
+  try:
+    scene_lib.check_background(cfg.data.background)
+  except ValueError as e:
+    raise app.UsageError(str(e)) from e
+  if cfg.semantic.scorer != "clip":
+    return
+  # Only a CLIP scorer imports the clip package.
+  from clipgs_jax.clip import weights  # pylint: disable=g-import-not-at-top
+  try:
+    weights.resolve_weights_path(clip_weights)
+  except (ValueError, FileNotFoundError) as e:
+    raise app.UsageError(f"--config.semantic.scorer=clip: {e}") from e
+
+
+def _with_scene_background(cfg: config_lib.Config, scene
+                           ) -> config_lib.Config:
+  """`cfg` rendering onto the colour the scene's photos were composited
+  onto (data.background), when they have an alpha channel: a model of
+  a photo on white must not draw the white."""
+  if scene.background is None or (
+      tuple(cfg.train.background) == scene.background):
+    return cfg
+  logging.info("photos with alpha on %s: train.background %s -> %s",
+               cfg.data.background, cfg.train.background, scene.background)
+  return dataclasses.replace(cfg, train=dataclasses.replace(
+      cfg.train, background=scene.background))
 
 
 def _held_views(cfg: config_lib.Config):

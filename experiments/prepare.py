@@ -77,7 +77,10 @@ _CACHE_DIR = flags.DEFINE_string("cache_dir", None, "benchmark, pack: "
                                  "undistortion and resize cache of the "
                                  "input scene.")
 _SCENE_FOLDER = flags.DEFINE_string("scene_folder", None, "pack: the scene "
-                                    "folder (images/, sparse/0/).")
+                                    "folder (sparse/0/ or transforms.json).")
+_BACKGROUND = flags.DEFINE_enum(
+    "background", "white", list(scene_lib.BACKGROUNDS), "pack: the colour "
+    "behind photos with alpha (train.py's --config.data.background).")
 _DOWNSCALE = flags.DEFINE_integer("downscale", None, "pack: image downscale "
                                   "factor K (train.py's "
                                   "--config.data.downscale).")
@@ -124,7 +127,8 @@ def _pack() -> None:
   cli.require_folder("scene_folder", _SCENE_FOLDER.value)
   tic = time.perf_counter()
   splits = scene_lib.pack(_SCENE_FOLDER.value, _OUT.value, _DOWNSCALE.value,
-                          cache_dir=_CACHE_DIR.value)
+                          cache_dir=_CACHE_DIR.value,
+                          background=_BACKGROUND.value)
   size = os.path.getsize(_OUT.value) / 2**20
   print(f"wrote {_OUT.value} ({size:.1f} MiB; train splits: "
         f"{', '.join(splits) or 'one, no RobustNeRF names'}) in "

@@ -376,7 +376,7 @@ class _Unsafe:
 def _run_train(*flags, env=None):
   """experiments/train.py as a subprocess: (exit code, stderr lines)."""
   env = dict(os.environ, PYTHONPATH=str(ROOT), JAX_PLATFORMS="cpu",
-             CLIPGS_CLIP_WEIGHTS="", **(env or {}))
+             CLIPGS_CLIP_WEIGHTS="") | (env or {})
   proc = subprocess.run(
       [sys.executable, str(ROOT / "experiments" / "train.py"), *flags],
       capture_output=True, text=True, env=env, cwd=ROOT, check=False)
@@ -451,6 +451,28 @@ class TrainScriptTest(absltest.TestCase):
                                 "safetensors",
                                 "pass CLIP ViT-B/32 weights"))
     self.assertNotIn("weights_only", line)
+
+  def test_missing_clip_weights_is_the_only_line(self):
+    # Checked before the (broken) scene loads; JAX probes every backend
+    # (JAX_PLATFORMS unset), and its notices stay hidden.
+    os.remove(os.path.join(self.scene, "sparse", "0", "cameras.bin"))
+    status, _, stderr = _run_train(
+        f"--workdir={self.workdir}", f"--scene={self.scene}",
+        "--config.semantic.scorer=clip",
+        env=dict(self.env, JAX_PLATFORMS=""))
+    self.assertEqual(status, cli.EXIT_USAGE, stderr)
+    self.assertLen(stderr.splitlines(), 1, stderr)
+    self.assertStartsWith(stderr, "error: --config.semantic.scorer=clip: "
+                          "CLIP weights are needed")
+    self.assertFalse(os.path.exists(self.workdir))
+
+  def test_transforms_without_frames_through_the_script(self):
+    scene = os.path.join(self.tmp, "blender")
+    os.makedirs(scene)
+    pathlib.Path(scene, "transforms.json").write_text(
+        '{"camera_angle_x": 0.7, "frames": []}')
+    self.run_train(f"--scene={scene}", code=cli.EXIT_ERROR,
+                   says=("transforms.json has no frames", "file_path"))
 
   def test_sweep_without_benchmarks(self):
     self.run_train("--config=configs/table.py", code=cli.EXIT_USAGE,

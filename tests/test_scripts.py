@@ -15,9 +15,14 @@ SCRIPTS = tuple(sorted(p.name for p in (ROOT / "experiments").glob("*.py")))
 TRAIN_FLAGS = {"config", "workdir", "scene", "resume", "clip_weights"}
 # cli.run defines these for every script.
 CLI_FLAGS = {"debug", "verbose"}
+# Flags that mean the same in several scripts: the run folders the viewer
+# and the video read, and an output file.
+SHARED_FLAGS = {"run": {"view.py", "render.py"},
+                "compare": {"view.py", "render.py"},
+                "out": {"prepare.py", "render.py"}}
 # The budget of experiments/: at most half of the 3,000 lines it once had
-# (BUILD_NOTES.md, "Layout").
-MAX_LINES = 800
+# (BUILD_NOTES.md, "Layout"); 800 for six scripts, 850 with render.py.
+MAX_LINES = 850
 
 
 def _tree(name):
@@ -39,7 +44,8 @@ def test_flags_are_defined_once():
   seen = {}
   for name in SCRIPTS:
     for flag in _flags(name):
-      assert flag not in seen, f"--{flag} in {name} and {seen.get(flag)}"
+      assert flag not in seen or {name, seen[flag]} <= SHARED_FLAGS.get(
+          flag, set()), f"--{flag} in {name} and {seen.get(flag)}"
       assert flag not in CLI_FLAGS, f"--{flag} in {name}"
       if name != "train.py":
         assert flag not in TRAIN_FLAGS, f"--{flag} in {name}"

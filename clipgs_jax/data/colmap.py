@@ -51,6 +51,8 @@ class Model:
       copy when the source cameras were distorted).
     sparse_dir: str, folder the model was read from.
     undistorted: bool, True if the images were undistorted by pycolmap.
+    test_views: the positions in `names` of the capture's own held-out
+      views (a transforms.json scene's transforms_test.json), or None.
   """
   names: tuple[str, ...]
   rotations: np.ndarray
@@ -62,6 +64,7 @@ class Model:
   image_dir: str
   sparse_dir: str
   undistorted: bool
+  test_views: tuple[int, ...] | None = None
 
 
 def cache_root() -> str:
@@ -102,7 +105,8 @@ def find_sparse_dir(scene_path: str) -> str:
       return folder
   raise FileNotFoundError(
       f"no COLMAP model in {os.path.join(scene_path, 'sparse', '0')} "
-      f"(cameras.bin or cameras.txt missing); {_FIX}.")
+      f"(cameras.bin or cameras.txt missing) and no transforms.json in "
+      f"{scene_path}; {_FIX}.")
 
 
 def read_reconstruction(sparse_dir: str) -> "pycolmap.Reconstruction":

@@ -36,16 +36,18 @@ def _to_unit_float(pixels: np.ndarray, path: str) -> np.ndarray:
                    "the image to 8- or 16-bit PNG/JPEG.")
 
 
-def read_image(path: str) -> np.ndarray:
+def read_image(path: str, background=None) -> np.ndarray:
   """Reads an image file as RGB.
 
   The stored pixels are returned as they are: EXIF orientation is NOT applied,
   because COLMAP poses (and its width/height) refer to the stored pixel grid.
-  An alpha channel is dropped (not composited): colour is kept as stored.
-  Grey images are replicated into three channels.
+  An alpha channel is composited onto `background`, or dropped without one
+  (colour kept as stored). Grey images are replicated into three channels.
 
   Args:
     path: str, any format OpenImageIO reads (PNG, JPEG, TIFF, EXR, ...).
+    background: None, or float [3] in [0, 1]: the colour behind a photo
+      with an alpha channel (colour * alpha + background * (1 - alpha)).
 
   Returns:
     float32 [H, W, 3], values in [0, 1] (8-bit / 255, 16-bit / 65535).
@@ -73,17 +75,27 @@ def read_image(path: str) -> np.ndarray:
     inp.close()
   pixels = np.asarray(pixels).reshape(spec.height, spec.width, spec.nchannels)
   image = _to_unit_float(pixels, path)
+  alpha = None
   if spec.nchannels in (1, 2):       # grey, or grey + alpha
+    alpha = image[..., 1:2] if spec.nchannels == 2 else None
     image = np.repeat(image[..., :1], 3, axis=-1)
-  elif spec.nchannels >= 3:          # RGB, RGBA (alpha dropped), more
+  elif spec.nchannels >= 3:          # RGB, RGBA, more
+    alpha = image[..., 3:4] if spec.nchannels == 4 else None
     image = image[..., :3]
   else:
     raise ValueError(f"{path} has no colour channels.")
-  return np.ascontiguousarray(image)
+  if alpha is not None and background is not None:
+    # The stored colour is unassociated (_read_config), so this is "over".
+    image = image * alpha + np.asarray(background, np.float32) * (1 - alpha)
+  return np.ascontiguousarray(image, dtype=np.float32)
 
 
-def image_size(path: str) -> tuple[int, int]:
-  """(width, height) of an image file, from its header only."""
+def has_alpha(path: str) -> bool:
+  """Whether an image file has an alpha channel, from its header only."""
+  return _header(path).alpha_channel >= 0
+
+
+def _header(path: str) -> oiio.ImageSpec:
   if not os.path.isfile(path):
     raise FileNotFoundError(f"image file not found: {path}")
   inp = oiio.ImageInput.open(path)
@@ -93,6 +105,12 @@ def image_size(path: str) -> tuple[int, int]:
                      "re-save it as PNG or JPEG.")
   spec = inp.spec()
   inp.close()
+  return spec
+
+
+def image_size(path: str) -> tuple[int, int]:
+  """(width, height) of an image file, from its header only."""
+  spec = _header(path)
   return spec.width, spec.height
 
 
@@ -156,11 +174,14 @@ def resize_area(image: np.ndarray, width: int, height: int) -> np.ndarray:
   return out.astype(np.float32)
 
 
-def _cache_file(cache_dir: str, path: str, factor: int) -> str:
-  """Cache path keyed by source path, size and mtime (stale files ignored)."""
+def _cache_file(cache_dir: str, path: str, factor: int, background) -> str:
+  """Cache path keyed by source path, size, mtime and background (stale
+  files ignored)."""
   st = os.stat(path)
   key = (f"{_CACHE_VERSION}|{os.path.realpath(path)}|{st.st_size}|"
          f"{st.st_mtime_ns}|{factor}")
+  if background is not None:
+    key += "|" + ",".join(f"{float(c):g}" for c in background)
   digest = hashlib.sha1(key.encode()).hexdigest()[:16]
   return os.path.join(cache_dir, f"{digest}-{os.path.basename(path)}.png")
 
@@ -169,13 +190,19 @@ def _check_size(path, actual, expected, what):
   if tuple(actual) != tuple(expected):
     raise ValueError(
         f"{path} is {actual[0]}x{actual[1]} pixels but {what} says "
-        f"{expected[0]}x{expected[1]}; replace the image or re-run COLMAP.")
+        f"{expected[0]}x{expected[1]}; replace the image or fix its camera.")
+
+
+def _codes(image: np.ndarray) -> np.ndarray:
+  """`image` quantised to 16-bit codes (8- and 16-bit files are already)."""
+  return np.round(np.clip(image, 0, 1) * 65535).astype(np.float32) / 65535
 
 
 def load_image(path: str, *, factor: int = 1,
                expected_size: tuple[int, int] | None = None,
                cache_dir: str | None = None,
-               prescaled_path: str | None = None) -> np.ndarray:
+               prescaled_path: str | None = None,
+               background=None) -> np.ndarray:
   """Reads an image downscaled by an integer factor.
 
   With factor K > 1: a pre-scaled file (e.g. RobustNeRF's `images_K/`) is
@@ -191,18 +218,20 @@ def load_image(path: str, *, factor: int = 1,
       camera); a mismatch raises ValueError naming the file.
     cache_dir: str or None, folder for resized copies.
     prescaled_path: str or None, a file already downscaled by K.
+    background: None or float [3], see `read_image`; an alpha channel is
+      composited at full resolution, before the area average.
 
   Returns:
     float32 [h, w, 3] in [0, 1]; (w, h) is `downscaled_size` (or within one
     pixel of W / K for a pre-scaled file, whose own size is kept).
   """
   if factor == 1:
-    image = read_image(path)
+    image = read_image(path, background)
     if expected_size is not None:
       _check_size(path, image.shape[1::-1], expected_size, "its camera")
-    return image
+    return _codes(image)
   if prescaled_path is not None and os.path.isfile(prescaled_path):
-    image = read_image(prescaled_path)
+    image = read_image(prescaled_path, background)
     if expected_size is not None:
       w, h = expected_size
       if (abs(image.shape[1] - w / factor) >= 1 or
@@ -211,18 +240,18 @@ def load_image(path: str, *, factor: int = 1,
             f"{prescaled_path} is {image.shape[1]}x{image.shape[0]} pixels, "
             f"not about 1/{factor} of its camera's {w}x{h}; delete the "
             "pre-scaled folder or fix the image.")
-    return image
+    return _codes(image)
   if not os.path.isfile(path):
     raise FileNotFoundError(f"image file not found: {path}")
-  cached = _cache_file(cache_dir, path, factor) if cache_dir else None
+  cached = (_cache_file(cache_dir, path, factor, background) if cache_dir
+            else None)
   if cached is not None and os.path.isfile(cached):
     return read_image(cached)
-  image = read_image(path)
+  image = read_image(path, background)
   size = image.shape[1::-1]
   if expected_size is not None:
     _check_size(path, size, expected_size, "its camera")
-  image = resize_area(image, *downscaled_size(*size, factor))
-  image = np.round(np.clip(image, 0, 1) * 65535).astype(np.float32) / 65535
+  image = _codes(resize_area(image, *downscaled_size(*size, factor)))
   if cached is not None:
     # Cache files are written once and read often: favour write speed.
     write_png(cached, image, bits=16, compression=1)

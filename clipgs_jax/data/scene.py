@@ -1,4 +1,5 @@
-"""Scenes for training: COLMAP poses, images, masks and the train/test split."""
+"""Scenes for training: poses (COLMAP or transforms.json), images, masks
+and the train/test split."""
 
 import dataclasses
 import os
@@ -12,18 +13,17 @@ from clipgs_jax import config as config_lib
 from clipgs_jax import fileio
 from clipgs_jax.data import colmap
 from clipgs_jax.data import images
+from clipgs_jax.data import splits
+from clipgs_jax.data import transforms
 
-# RobustNeRF file-name tokens: `extra` views are clean held-out test views,
-# `clutter` views have distractors, `clean` views are their clean twins.
-_ROBUSTNERF_TOKENS = ("clutter", "extra", "clean")
-TRAIN_SPLITS = config_lib.TRAIN_SPLITS
-# Without RobustNeRF names, every 8th image by name is a test view (the
-# convention of Mip-NeRF 360 and 3DGS), in colmap.natural_key order: the
-# plain sorted order for zero-padded numbers, capture order for 1..N.
-TEST_EVERY = 8
+TRAIN_SPLITS = splits.TRAIN_SPLITS     # the values of data.train_split
 # 3DGS's "cameras_extent": camera-centre radius with a 10% margin.
 EXTENT_MARGIN = 1.1
 MASK_THRESHOLD = 0.5
+# The colour behind the subject of photos with an alpha channel
+# (data.background): white, as the evaluations of the Blender scenes use,
+# or black. The run renders onto it too (run.py).
+BACKGROUNDS = config_lib.BACKGROUNDS
 # Smallest image side: the SSIM window (losses.SSIM_WINDOW); the test
 # metrics' SSIM needs one full window inside the image.
 MIN_IMAGE_SIDE = 11
@@ -153,6 +153,8 @@ class Scene:
       only some of the training views (a process of a multi-host run);
       None: train.cameras. For poses: the intrinsics of the views not held
       are scaled to images.downscaled_size without reading their photos.
+    background: (r, g, b), the BACKGROUNDS colour the photos with an alpha
+      channel were composited onto; None when no photo has one.
   """
   train: Views
   test: Views
@@ -161,6 +163,7 @@ class Scene:
   extent: float
   path: str
   train_cameras: camera.Camera | None = None
+  background: tuple[float, float, float] | None = None
 
 
 def all_train_cameras(scene) -> camera.Camera:
@@ -182,51 +185,17 @@ def subset(views: Views, ids) -> Views:
                ids=ids if views.ids is None else views.ids[ids])
 
 
-def _name_tokens(names) -> list[list[str]]:
-  """The RobustNeRF split words in each image's file name."""
-  return [[t for t in _ROBUSTNERF_TOKENS if t in os.path.basename(n)]
-          for n in names]
-
-
-def _split_names(names, train_split: str, sparse_dir: str):
-  """(train indices, test indices) into `names` (colmap.Model order)."""
-  tokens = _name_tokens(names)
-  if any(tokens):
-    # RobustNeRF naming: every image must say which split it belongs to.
-    for name, found in zip(names, tokens):
-      if len(found) != 1:
-        raise ValueError(
-            f"image {name} in {sparse_dir} has {found or 'none'} of the "
-            f"RobustNeRF split words {_ROBUSTNERF_TOKENS} in its name, "
-            "expected exactly one; rename it.")
-    test = [i for i, t in enumerate(tokens) if t[0] == "extra"]
-    train = [i for i, t in enumerate(tokens) if t[0] == train_split]
-    if not test:
-      raise ValueError(f"no test views in {sparse_dir}: RobustNeRF names "
-                       "found but no image name contains 'extra'; add clean "
-                       "held-out 'extra' views.")
-    if not train:
-      raise ValueError(f"no training views in {sparse_dir}: no image name "
-                       f"contains {train_split!r}; pick another train_split.")
-    return train, test
-  test = list(range(0, len(names), TEST_EVERY))
-  train = [i for i in range(len(names)) if i % TEST_EVERY]
-  if not train:
-    raise ValueError(f"no training views in {sparse_dir}: only {len(names)} "
-                     f"registered image(s), every {TEST_EVERY}th is held out "
-                     "for testing; register more images.")
-  return train, test
-
-
 def _mask_path(scene_path: str, name: str) -> str:
   stem = os.path.splitext(name)[0]
   return os.path.join(scene_path, "masks", stem + ".png")
 
 
 def _load_views(model: colmap.Model, idx, scene_path: str, downscale: int,
-                cache_dir: str, with_masks: bool, keep=None) -> Views:
+                cache_dir: str, with_masks: bool, keep=None,
+                background=None) -> Views:
   """Reads the images (and masks) of the views `idx` of `model`; with
-  `keep` (a set of positions in idx) only those views."""
+  `keep` (a set of positions in idx) only those views; an alpha channel
+  is composited onto `background` (see images.read_image)."""
   prescaled_dir = None
   if downscale > 1 and not model.undistorted:
     # RobustNeRF-style pre-scaled copies; for distorted scenes they are
@@ -250,7 +219,7 @@ def _load_views(model: colmap.Model, idx, scene_path: str, downscale: int,
             "it, or delete the folder to resize from images/.")
     image = images.load_image(src, factor=downscale, expected_size=size,
                               cache_dir=resize_cache,
-                              prescaled_path=prescaled)
+                              prescaled_path=prescaled, background=background)
     h, w = image.shape[:2]
     if min(w, h) < MIN_IMAGE_SIDE:
       raise ValueError(
@@ -320,10 +289,13 @@ def _extent(cameras: camera.Camera) -> float:
 
 def load_scene(path: str, downscale: int = 1, train_split: str = "clutter",
                cache_dir: str | None = None,
-               train_views: Callable[[int], bool] | None = None) -> Scene:
-  """Loads a COLMAP scene (or its pack, see `pack`) with its train/test split.
+               train_views: Callable[[int], bool] | None = None,
+               background: str = "white") -> Scene:
+  """Loads a scene (COLMAP, transforms.json, or a pack, see `pack`) with its
+  train/test split.
 
-  Splits: with RobustNeRF names (`clutter`, `extra`, `clean` in the image
+  Splits: a transforms scene with transforms_test.json tests on its
+  frames; with RobustNeRF names (`clutter`, `extra`, `clean` in the image
   names) the test views are `extra` and the training views are
   `train_split` (`clutter`, or `clean` for the clean upper bound); otherwise
   every 8th image by name (0, 8, 16, ...; in colmap.natural_key order) is a
@@ -332,8 +304,10 @@ def load_scene(path: str, downscale: int = 1, train_split: str = "clutter",
   present.
 
   Args:
-    path: str, scene folder with `images/` and `sparse/0/`, or a `.npz`
-      file written by `pack` (it must hold `downscale`; `cache_dir` unused).
+    path: str, scene folder with `images/` and `sparse/0/`, or with
+      transforms.json / transforms_train.json (data/transforms.py), or a
+      `.npz` file written by `pack` (it must hold `downscale` and, for
+      photos with alpha, `background`; `cache_dir` unused).
     downscale: int, image downscale factor K (uses `images_K/` if present).
     train_split: str, "clutter" or "clean" (RobustNeRF scenes only).
     cache_dir: str or None, writable folder for undistorted and resized
@@ -341,6 +315,8 @@ def load_scene(path: str, downscale: int = 1, train_split: str = "clutter",
     train_views: None (all), or which training views to hold, by position
       among the training views: a process of a multi-host run reads only
       its own views' photos (Scene.train_centers keeps every camera).
+    background: str, a BACKGROUNDS name: the colour photos with an alpha
+      channel are composited onto.
 
   Returns:
     A `Scene`.
@@ -349,31 +325,53 @@ def load_scene(path: str, downscale: int = 1, train_split: str = "clutter",
   if train_split not in TRAIN_SPLITS:
     raise ValueError(f"train_split must be one of {TRAIN_SPLITS}, got "
                      f"{train_split!r}.")
+  check_background(background)
   if path.endswith(PACK_SUFFIX):
-    return _load_pack(path, downscale, train_split, train_views)
+    return _load_pack(path, downscale, train_split, train_views, background)
   cache_dir = cache_dir or colmap.default_cache_dir(path)
-  return _load_folder(colmap.load_model(path, cache_dir=cache_dir), path,
-                      downscale, train_split, cache_dir, train_views)
+  return _load_folder(_load_model(path, cache_dir), path, downscale,
+                      train_split, cache_dir, train_views, background)
+
+
+def check_background(background: str) -> None:
+  """Raises ValueError unless `background` names a BACKGROUNDS colour."""
+  if background not in BACKGROUNDS:
+    raise ValueError(f"--config.data.background={background} is not one of "
+                     f"{', '.join(BACKGROUNDS)} (the colour behind photos "
+                     "with an alpha channel).")
+
+
+def _load_model(path: str, cache_dir: str) -> colmap.Model:
+  """The scene folder's cameras: transforms.json if it has one, else its
+  COLMAP model."""
+  if os.path.isdir(path) and transforms.files(path) is not None:
+    return transforms.load_model(path)
+  return colmap.load_model(path, cache_dir=cache_dir)
 
 
 def _load_folder(model: colmap.Model, path: str, downscale: int,
                  train_split: str, cache_dir: str,
-                 train_views: Callable[[int], bool] | None) -> Scene:
+                 train_views: Callable[[int], bool] | None,
+                 background: str) -> Scene:
   """`load_scene` of the folder scene `path` whose model is `model`."""
-  train_idx, test_idx = _split_names(model.names, train_split,
-                                     model.sparse_dir)
+  train_idx, test_idx = splits.split(model.names, train_split,
+                                     model.sparse_dir, model.test_views)
   keep = None if train_views is None else {
       k for k in range(len(train_idx)) if train_views(k)}
+  rgba = any(images.has_alpha(os.path.join(model.image_dir, name))
+             for name in model.names)
+  colour = BACKGROUNDS[background] if rgba else None
   train = _load_views(model, train_idx, path, downscale, cache_dir,
-                      with_masks=True, keep=keep)
+                      with_masks=True, keep=keep, background=colour)
   test = _load_views(model, test_idx, path, downscale, cache_dir,
-                     with_masks=False)
+                     with_masks=False, background=colour)
   cams = train.cameras if keep is None else _poses(model, train_idx,
                                                     downscale)
   return Scene(train=train, test=test, points=model.points,
                point_colors=model.point_colors.astype(np.float32) / 255,
                extent=_extent(cams), path=path,
-               train_cameras=None if keep is None else cams)
+               train_cameras=None if keep is None else cams,
+               background=colour)
 
 
 def _poses(model: colmap.Model, idx, downscale: int) -> camera.Camera:
@@ -398,13 +396,6 @@ def _stack(cams: list[camera.Camera]) -> camera.Camera:
       width=max(c.width for c in cams), height=max(c.height for c in cams))
 
 
-def _train_splits(model: colmap.Model) -> tuple[str, ...]:
-  """The train splits of a folder scene: those named in a RobustNeRF one,
-  () for other scenes (their train_split is ignored)."""
-  tokens = _name_tokens(model.names)
-  return tuple(t for t in TRAIN_SPLITS if any(t in found for found in tokens))
-
-
 def _views_arrays(prefix: str, views: Views) -> dict[str, np.ndarray]:
   codes = np.round(views.images * _CODES).astype(np.uint16)
   if not np.array_equal(codes.astype(np.float32) / np.float32(_CODES),
@@ -425,13 +416,16 @@ def _views_arrays(prefix: str, views: Views) -> dict[str, np.ndarray]:
 
 
 def pack(path: str, out: str, downscale: int,
-         cache_dir: str | None = None) -> tuple[str, ...]:
+         cache_dir: str | None = None, background: str = "white"
+         ) -> tuple[str, ...]:
   """Writes the folder scene `path` at `downscale` as one .npz file `out`.
 
   The file holds what `load_scene` returns for every train split the scene
   has (both for a RobustNeRF benchmark, whose clean upper bound reads
   `clean`), bit for bit; `load_scene(out, downscale, split)` gives it back
-  without pycolmap or image files. Written atomically, compressed.
+  without pycolmap or image files. Photos with an alpha channel are
+  packed composited onto `background` (a BACKGROUNDS name), which a load
+  of the pack must ask for. Written atomically, compressed.
 
   Returns:
     The RobustNeRF train splits packed; () for a scene without them.
@@ -439,20 +433,24 @@ def pack(path: str, out: str, downscale: int,
   if not out.endswith(PACK_SUFFIX):
     raise ValueError(f"pack output {out} must end in {PACK_SUFFIX}.")
   images.downscaled_size(1, 1, downscale)      # validates the factor
+  check_background(background)
   cache_dir = cache_dir or colmap.default_cache_dir(path)
-  model = colmap.load_model(path, cache_dir=cache_dir)   # read once
-  splits = _train_splits(model)
+  model = _load_model(path, cache_dir)   # read once
+  named = splits.train_splits(model.names)
   arrays = {"format": np.array(PACK_FORMAT), "downscale": np.array(downscale),
-            "splits": np.array(splits, dtype=str)}
-  for split in splits or TRAIN_SPLITS[:1]:
-    scene = _load_folder(model, path, downscale, split, cache_dir, None)
-    arrays |= _views_arrays(f"train.{split if splits else 'all'}",
+            "splits": np.array(named, dtype=str)}
+  for split in named or TRAIN_SPLITS[:1]:
+    scene = _load_folder(model, path, downscale, split, cache_dir, None,
+                         background)
+    arrays |= _views_arrays(f"train.{split if named else 'all'}",
                             scene.train)
   arrays |= _views_arrays("test", scene.test)
   arrays |= {"points": scene.points, "point_colors": scene.point_colors}
+  if scene.background is not None:
+    arrays["background"] = np.array(background)
   fileio.atomic_write(out, lambda tmp: np.savez_compressed(tmp, **arrays),
                       PACK_SUFFIX)
-  return splits
+  return named
 
 
 def _read_views(data, prefix: str, path: str) -> Views:
@@ -474,7 +472,8 @@ def _read_views(data, prefix: str, path: str) -> Views:
 
 
 def _load_pack(path: str, downscale: int, train_split: str,
-               train_views: Callable[[int], bool] | None) -> Scene:
+               train_views: Callable[[int], bool] | None,
+               background: str) -> Scene:
   """The Scene that `pack` wrote to `path`."""
   if not os.path.isfile(path):
     raise FileNotFoundError(f"scene pack {path} does not exist; write it with "
@@ -493,16 +492,26 @@ def _load_pack(path: str, downscale: int, train_split: str,
     raise ValueError(f"scene pack {path} holds downscale {packed}, not "
                      f"{downscale}; pass --config.data.downscale={packed} or "
                      f"pack the scene again with --downscale={downscale}.")
-  splits = tuple(str(s) for s in data["splits"])
-  if splits and train_split not in splits:
-    raise ValueError(f"scene pack {path} has the train split(s) {splits}, "
+  packed_splits = tuple(str(s) for s in data["splits"])
+  if packed_splits and train_split not in packed_splits:
+    raise ValueError(f"scene pack {path} has the train split(s) "
+                     f"{packed_splits}, "
                      f"not {train_split!r}; pack a scene that has it.")
+  packed_background = data.get("background")
+  if packed_background is not None and str(packed_background) != background:
+    raise ValueError(f"scene pack {path} holds photos composited onto "
+                     f"{packed_background}, not {background}; pass "
+                     f"--config.data.background={packed_background} or pack "
+                     f"the scene again with --background={background}.")
   # Without RobustNeRF names train_split is ignored, as for the folder.
-  train = _read_views(data, f"train.{train_split if splits else 'all'}", path)
+  train = _read_views(
+      data, f"train.{train_split if packed_splits else 'all'}", path)
   cams = train.cameras
   if train_views is not None:
     train = subset(train, [k for k in range(len(train)) if train_views(k)])
   return Scene(train=train, test=_read_views(data, "test", path),
                points=data["points"], point_colors=data["point_colors"],
                extent=_extent(cams), path=path,
-               train_cameras=None if train_views is None else cams)
+               train_cameras=None if train_views is None else cams,
+               background=None if packed_background is None
+               else BACKGROUNDS[background])

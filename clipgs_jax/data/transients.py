@@ -42,7 +42,7 @@ from clipgs_jax.data import billboards
 from clipgs_jax.data import colmap
 from clipgs_jax.data import transient_photos
 from clipgs_jax.data import images
-from clipgs_jax.data import scene as scene_lib
+from clipgs_jax.data import splits
 
 MODES = ("independent", "persistent")
 DEFAULT_PERSIST_VIEWS = 5   # views per billboard: RobustNeRF-like runs
@@ -69,8 +69,8 @@ def parse_per_view(text: str) -> tuple[int, int]:
 def split_views(num: int) -> tuple[list[int], list[int]]:
   """(train, test) indices into the model's names (colmap.natural_key
   order): every 8th (0, 8, ...) tests."""
-  test = list(range(0, num, scene_lib.TEST_EVERY))
-  return [i for i in range(num) if i % scene_lib.TEST_EVERY], test
+  test = list(range(0, num, splits.TEST_EVERY))
+  return [i for i in range(num) if i % splits.TEST_EVERY], test
 
 
 def choose_cluttered(num: int, fraction: float, seed: int,

@@ -106,8 +106,8 @@ class ViewedRun:
     return np.asarray(semantic.normalized_scores(self.stats), np.float32)
 
 
-def load(path: str) -> ViewedRun:
-  """Reads a run folder: its checkpoint (or else its PLY) and pruned.ply.
+def read_info(path: str) -> dict[str, Any]:
+  """A run folder's run.json, read without its Gaussians or scene.
 
   Raises:
     FileNotFoundError, ValueError: one line naming the folder and the fix.
@@ -120,8 +120,17 @@ def load(path: str) -> ViewedRun:
   if missing:
     raise ValueError(f"{path} is not a run folder (no {', '.join(missing)})"
                      "; pass a folder written by experiments/train.py")
-  info = run_lib.read_json(os.path.join(path, run_lib.RUN_JSON),
+  return run_lib.read_json(os.path.join(path, run_lib.RUN_JSON),
                            "scene and downscale")
+
+
+def load(path: str) -> ViewedRun:
+  """Reads a run folder: its checkpoint (or else its PLY) and pruned.ply.
+
+  Raises:
+    FileNotFoundError, ValueError: one line naming the folder and the fix.
+  """
+  info = read_info(path)
   cfg = run_lib.load_config(path)
   ckpt = os.path.join(path, train.CHECKPOINT_NAME)
   ply_path = os.path.join(path, run_lib.POINT_CLOUD_PLY)
@@ -162,14 +171,17 @@ def load(path: str) -> ViewedRun:
                    splats=to_splats(params), pruned=pruned)
 
 
-def check_same_scene(a: ViewedRun, b: ViewedRun) -> None:
-  """Raises ValueError unless two runs show the same scene and views."""
-  key = lambda r: (r.info.get("scene"), r.info.get("downscale"),
-                   r.info.get("train_split", "clutter"))
+def check_same_scene(a: str, b: str) -> None:
+  """Raises ValueError unless run folders `a` (--run) and `b` (--compare)
+  show the same scene and views; reads only their run.json."""
+  def key(path):
+    info = read_info(path)
+    return (info.get("scene"), info.get("downscale"),
+            info.get("train_split", "clutter"))
   if key(a) != key(b):
-    raise ValueError(f"--compare={b.path} shows scene {key(b)}, --run="
-                     f"{a.path} shows {key(a)} (scene, downscale, split); "
-                     "compare two runs of the same scene")
+    raise ValueError(f"--compare={b} shows scene {key(b)}, --run={a} shows "
+                     f"{key(a)} (scene, downscale, split); compare two runs "
+                     "of the same scene")
 
 
 def load_scene(run: ViewedRun):

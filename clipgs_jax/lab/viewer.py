@@ -324,10 +324,9 @@ def serve(run_dir: str, compare_dir: str | None = None,
   """
   tic = time.perf_counter()
   check_port(host, port)
-  runs = [viewed_run.load(run_dir)]
   if compare_dir is not None:
-    runs.append(viewed_run.load(compare_dir))
-    viewed_run.check_same_scene(runs[0], runs[1])
+    viewed_run.check_same_scene(run_dir, compare_dir)
+  runs = [viewed_run.load(d) for d in (run_dir, compare_dir) if d is not None]
   with contextlib.redirect_stdout(io.StringIO()):   # its banner: ours below
     server = viser.ViserServer(host=host, port=port, verbose=False)
   try:
