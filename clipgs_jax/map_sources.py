@@ -20,6 +20,7 @@ import numpy as np
 
 from clipgs_jax import config as config_lib
 from clipgs_jax import features
+from clipgs_jax import learned
 from clipgs_jax import residual
 
 # The combination rule: a pixel the residual test calls transient stays
@@ -28,8 +29,8 @@ SEMANTIC_GATE = 0.5
 
 # The residual map's steps in the order they apply (_test's, then _gates');
 # a map skips the steps its source and config do not have.
-STAGES = ("threshold", "rule", "vote", "semantic", "alpha", "valid",
-          "share")
+STAGES = ("threshold", "rule", "learned", "vote", "semantic", "alpha",
+          "valid", "share")
 
 
 @flax.struct.dataclass
@@ -43,11 +44,17 @@ class ResidualSource:
       (features.regions), which take the majority verdict of the residual
       test inside them.
     num_regions: the regions' label count (static).
+    pixel_features: float32 [V, H, W, F] or None: each training photo's
+      per-pixel features (learned.pixel_features); given, the map is the
+      learned map, the classifier's 1 - p(inlier) (the classifier is
+      TrainState.maps.classifier), voted over the regions if any.
   """
   semantic: jax.Array | None = None
   labels: jax.Array | None = None
   num_regions: int = flax.struct.field(pytree_node=False, default=0)
-  per_view = ("semantic", "labels")   # one entry per view (sharding.py)
+  pixel_features: jax.Array | None = None
+  # One entry per view (sharding.py).
+  per_view = ("semantic", "labels", "pixel_features")
 
 
 @flax.struct.dataclass
@@ -55,8 +62,9 @@ class ResidualMap:
   """One step's residual map.
 
   Attributes:
-    transient: float32 [H, W] in {0, 1}, the map m (1 = transient).
-    loss_weight: float32 [H, W] in {0, 1}, the per-pixel weight of the
+    transient: float32 [H, W] in {0, 1} (the learned map: in [0, 1]), the
+      map m (1 = transient).
+    loss_weight: float32 [H, W] in [0, 1], the per-pixel weight of the
       photometric loss: 1 - m, with the warm-up's sampled pixels kept.
     residual: float32 [H, W], mean_c |render - photo|.
   """
@@ -70,12 +78,21 @@ def _test(source: ResidualSource, stats: residual.ResidualState,
           valid: jax.Array | None) -> dict[str, jax.Array]:
   """The residual test's steps, each float32 [H, W] in {0, 1} (1 =
   transient so far), in order: "threshold" (the residual at or above the
-  threshold), "rule" (the 3x3 or patch rule: residual.inliers) and, with
-  feature regions, "vote" (each region's majority); the last is the test's
-  verdict."""
+  threshold), "rule" (the 3x3 or patch rule: residual.inliers), with pixel
+  features "learned" (the classifier's 1 - p(inlier), in [0, 1], which
+  replaces the rule's verdict) and, with feature regions, "vote" (each
+  region's majority); the last is the test's verdict."""
   steps = {"threshold": (res >= stats.threshold).astype(jnp.float32)}
   inlier = residual.inliers(res, stats.threshold, rc.rule, valid)
   steps["rule"] = 1.0 - inlier
+  if source.pixel_features is not None:
+    inlier = learned.predict(stats.classifier.params,
+                             source.pixel_features[view])
+    if valid is not None:
+      inlier = inlier * valid
+    steps["learned"] = 1.0 - inlier
+    if valid is not None:
+      steps["learned"] = steps["learned"] * valid
   if source.labels is not None:
     steps["vote"] = features.vote(inlier, source.labels[view],
                                   source.num_regions, rc.vote)
@@ -148,9 +165,16 @@ def residual_map(source: ResidualSource, stats: residual.ResidualState,
   """
   res = residual.residual(render, photo)
   transient = list(_test(source, stats, view, res, rc, valid).values())[-1]
-  kept = residual.sample_inliers(1.0 - transient, step, key,
-                                 rc.warmup)
-  dropped = 1.0 - kept
+  if source.pixel_features is None:
+    kept = residual.sample_inliers(1.0 - transient, step, key,
+                                   rc.warmup)
+    dropped = 1.0 - kept
+  else:
+    # The learned map weights the loss by p (a soft map), and the warm-up
+    # keeps its sampled pixels whole.
+    kept = residual.sample_inliers(jnp.zeros_like(transient), step, key,
+                                   rc.warmup)
+    dropped = transient * (1.0 - kept)
   for gate in _gates(source, view, rc, valid, alpha).values():
     transient, dropped = transient * gate, dropped * gate
   if rc.min_share > 0:
@@ -205,6 +229,20 @@ def in_stage_order(stages: dict) -> dict:
   STAGES' order, the last being the map: jax's pytrees (jit outputs,
   jax.tree.map) sort dict keys, which loses it."""
   return {k: stages[k] for k in STAGES if k in stages}
+
+
+def learned_features(images, lc, sizes=None) -> jax.Array:
+  """float32 [V, H, W, F], every training photo's per-pixel features for
+  the learned map (learned.pixel_features, once per photo); with `sizes`
+  (int [V, 2]) each photo's alone, 0 on the canvas around it."""
+  if sizes is None:
+    return jnp.asarray(np.stack(learned.pixel_features(images, lc)))
+  feats = learned.pixel_features(
+      [im[:h, :w] for im, (w, h) in zip(images, sizes)], lc)
+  out = np.zeros(np.shape(images)[:3] + (feats[0].shape[-1],), np.float32)
+  for o, f in zip(out, feats):
+    o[:f.shape[0], :f.shape[1]] = f
+  return jnp.asarray(out)
 
 
 def feature_regions(images, net: str, sizes=None) -> tuple[jax.Array, int]:

@@ -160,6 +160,9 @@ def semantic_label(cfg: config_lib.Config) -> str:
                else ", no early uniformity gate")
     if sem.scorer == "residual":
       return f"residual map ({rule}, no weights, no oracle)" + variant
+    if sem.scorer == "learned":
+      return (f"learned map ({cfg.learned.net} features, trained on the "
+              f"residual test: {rule}, no oracle)" + variant)
     if rc.with_semantic:
       variant += f", gating the residual map ({rule})"
     if sem.scorer == "oracle_patch":
