@@ -19,6 +19,8 @@ Adam state are a `Classifier` in TrainState.maps (residual.ResidualState),
 sized at construction, checkpointed and resumed bit for bit.
 """
 
+import functools
+import time
 from typing import Any
 
 import flax.struct
@@ -36,6 +38,10 @@ from clipgs_jax import residual
 # a 68x120 photo at its own pixels (stride 4 at 480 px).
 TAPS = (0, 1)
 BACKBONE_SIDE = 480
+# The shared principal axes come from this many photos, spread over the
+# scene: a second backbone pass over every photo would double the
+# features' cost for axes that barely move.
+BASIS_PHOTOS = 16
 
 
 @flax.struct.dataclass
@@ -163,49 +169,70 @@ def apply(clf: Classifier, grads: dict[str, jax.Array],
                     opt_state=opt_state)
 
 
+@functools.partial(jax.jit, static_argnames=("net",))
+def _taps(photo, weights, net: str) -> list[jax.Array]:
+  return features.backbone_taps(photo, weights, net, TAPS, BACKBONE_SIDE)
+
+
+@functools.partial(jax.jit, static_argnames=("net",))
+def _project(photo, weights, bases, net: str) -> jax.Array:
+  h, w = photo.shape[:2]
+  out = []
+  for t, (mean, basis) in zip(_taps(photo, weights, net), bases):
+    f = (t - mean) @ basis                                   # [h_t, w_t, dims]
+    out.append(jax.image.resize(f, (h, w, f.shape[-1]), "linear"))
+  return jnp.concatenate(out, -1) / np.sqrt(len(TAPS))
+
+
 def pixel_features(photos, lc: config_lib.LearnedConfig) -> list[np.ndarray]:
   """[float32 [h, w, feature_dims(lc)] for each photo]: each tap of the
   lc.net backbone (L2-normalised channel vectors) centred and projected on
-  the top lc.dims principal axes of that tap over every photo, upsampled
-  to the photo and weighted 1 / sqrt(len(TAPS)).
+  the top lc.dims principal axes of that tap, upsampled to the photo and
+  weighted 1 / sqrt(len(TAPS)).
 
   One basis for all photos, so a feature means the same in every view (the
-  regions' per-photo basis would not). Two passes over the photos (the
-  taps' covariance, then the projection), so no photo's taps are kept.
-  Host-side, once per scene; compiles once per photo size.
+  regions' per-photo basis would not), from the taps' covariance over
+  BASIS_PHOTOS photos spread evenly over the list; no photo's taps are
+  kept. Host-side, once per scene; compiles once per photo size.
   """
-  _, params = features.load_backbone(lc.net)
-  taps = jax.jit(lambda p, w: features.backbone_taps(
-      p, w, lc.net, TAPS, BACKBONE_SIDE))
+  _, weights = features.load_backbone(lc.net)
   photos = [np.asarray(p, np.float32) for p in photos]
-  sums, moments, count = None, None, [0.0] * len(TAPS)
-  for p in photos:
+  picked = np.unique(np.linspace(0, len(photos) - 1, BASIS_PHOTOS,
+                                 dtype=int))
+  sums, moments, count = None, None, 0
+  for i in picked:
     outs = [np.asarray(t, np.float64).reshape(-1, t.shape[-1])
-            for t in taps(p, params)]
+            for t in _taps(photos[i], weights, lc.net)]
     if sums is None:
       sums = [np.zeros(o.shape[-1]) for o in outs]
       moments = [np.zeros((o.shape[-1],) * 2) for o in outs]
-    for i, o in enumerate(outs):
-      sums[i] += o.sum(0)
-      moments[i] += o.T @ o
-      count[i] += o.shape[0]
+      count = [0] * len(outs)
+    for k, o in enumerate(outs):
+      sums[k] += o.sum(0)
+      moments[k] += o.T @ o
+      count[k] += o.shape[0]
   bases = []
   for s, m, n in zip(sums, moments, count):
     mean = s / n
     _, vectors = np.linalg.eigh(m / n - np.outer(mean, mean))
-    bases.append((mean, vectors[:, ::-1][:, :lc.dims]))   # top axes first
+    # eigh sorts ascending: the top lc.dims axes, largest first.
+    bases.append((jnp.asarray(mean, jnp.float32),
+                  jnp.asarray(vectors[:, ::-1][:, :lc.dims], jnp.float32)))
+  return [np.asarray(_project(p, weights, bases, lc.net)) for p in photos]
 
-  bases = [(jnp.asarray(m, jnp.float32), jnp.asarray(b, jnp.float32))
-           for m, b in bases]
 
-  @jax.jit
-  def project(p, w, bases):
-    h, wd = p.shape[:2]
-    out = []
-    for t, (mean, basis) in zip(features.backbone_taps(
-        p, w, lc.net, TAPS, BACKBONE_SIDE), bases):
-      f = (t - mean) @ basis
-      out.append(jax.image.resize(f, (h, wd, f.shape[-1]), "linear"))
-    return jnp.concatenate(out, -1) / np.sqrt(len(TAPS))
-
-  return [np.asarray(project(p, params, bases)) for p in photos]
+def benchmark(photos, lc: config_lib.LearnedConfig = config_lib.LearnedConfig()
+              ) -> dict:
+  """Seconds of `pixel_features` on `photos` (float [V, H, W, 3]): "wall_s"
+  and "cpu_s" (this process's CPU time over all its threads) per photo,
+  twice, so the second ("warm_*") excludes compiling and loading. Each
+  pass runs the backbone on min(V, BASIS_PHOTOS) + V photos."""
+  out = {"photos": len(photos), "height": int(np.shape(photos)[1]),
+         "width": int(np.shape(photos)[2]), "what": "learned features",
+         "net": lc.net, "dims": feature_dims(lc)}
+  for prefix in ("", "warm_"):
+    wall, cpu = time.perf_counter(), time.process_time()
+    pixel_features(photos, lc)
+    out[prefix + "wall_s"] = (time.perf_counter() - wall) / len(photos)
+    out[prefix + "cpu_s"] = (time.process_time() - cpu) / len(photos)
+  return out

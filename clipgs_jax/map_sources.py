@@ -86,13 +86,11 @@ def _test(source: ResidualSource, stats: residual.ResidualState,
   inlier = residual.inliers(res, stats.threshold, rc.rule, valid)
   steps["rule"] = 1.0 - inlier
   if source.pixel_features is not None:
-    inlier = learned.predict(stats.classifier.params,
-                             source.pixel_features[view])
-    if valid is not None:
-      inlier = inlier * valid
-    steps["learned"] = 1.0 - inlier
-    if valid is not None:
-      steps["learned"] = steps["learned"] * valid
+    p = learned.predict(stats.classifier.params,
+                        source.pixel_features[view])
+    # Outside the photo: neither inlier nor transient, as the rule's.
+    inlier = p if valid is None else p * valid
+    steps["learned"] = 1.0 - p if valid is None else (1.0 - p) * valid
   if source.labels is not None:
     steps["vote"] = features.vote(inlier, source.labels[view],
                                   source.num_regions, rc.vote)

@@ -58,21 +58,27 @@ class ClassifierTest(absltest.TestCase):
     np.testing.assert_array_equal(upper, 1.0)
 
   def test_confident_pixels(self):
-    # A view of residual 0.01 with a 4x4 block at 0.5 (44 % of 36 pixels):
-    # the 0.5 quantile is 0.01 (inliers under it: none but the rule's
-    # neighbours... all of the low pixels sit at the bin edge), the 0.9
-    # and the threshold's floor 0.15 both lie under 0.5.
-    res = np.full((6, 6), 0.01, np.float32)
-    res[1:5, 1:5] = 0.5
-    stats = _stats(np.where(np.arange(36).reshape(6, 6) < 30, 0.0, 0.5))
+    # Histogram: 20 residuals of 0.02, 10 of 0.1, 6 of 0.5. Its 0.5
+    # quantile is 0.02, its 0.9 quantile 0.5; the threshold is the 0.7
+    # quantile 0.1 floored to 0.15 (RC.min_threshold).
+    stats = _stats(np.repeat([0.02, 0.1, 0.5], [20, 10, 6]).reshape(6, 6))
+    self.assertAlmostEqual(float(stats.threshold), 0.15, places=6)
+    # The view: 0.01 on its border, 0.1 inside, 0.5 in its 4x4 centre.
+    res = np.full((8, 8), 0.01, np.float32)
+    res[1:7, 1:7] = 0.1
+    res[2:6, 2:6] = 0.5
     lower, upper = learned.confident(jnp.asarray(res), stats, RC, LC)
-    # Outlier labels: the block but its corners (the 3x3 rule keeps a
-    # corner, whose neighbourhood is 5/9 inlier).
-    outlier = 1.0 - np.asarray(upper)
-    self.assertEqual(outlier[1:5, 1:5].sum(), 12)
+    lower, outlier = np.asarray(lower), 1.0 - np.asarray(upper)
+    # Inliers under 0.02: the 28 border pixels and, by the 3x3 rule (5 of
+    # 9 neighbours inliers), the ring's 4 corners.
+    self.assertEqual(lower.sum(), 32)
+    self.assertEqual(lower[1, 1], 1.0)
+    self.assertEqual(lower[1, 2], 0.0)
+    # Outliers at 0.5 and above: the centre but its corners (the rule).
     self.assertEqual(outlier.sum(), 12)
-    # No pixel is labelled both ways.
-    self.assertEqual(float(np.sum(np.asarray(lower) * outlier)), 0.0)
+    self.assertEqual(outlier[2:6, 2:6].sum(), 12)
+    # The ring between the quantiles gets no label.
+    self.assertEqual(float(np.sum(lower * outlier)), 0.0)
 
   def test_training_on_labels_learns_them(self):
     # Features that tell the labelled pixels apart: Adam on the loss makes
