@@ -134,12 +134,20 @@ def confident(res: jax.Array, stats: residual.ResidualState,
 def loss(params: dict[str, jax.Array], feats: jax.Array, lower: jax.Array,
          upper: jax.Array, lc: config_lib.LearnedConfig,
          valid: jax.Array | None = None) -> jax.Array:
-  """float [], SLS-mlp's loss: mean(relu(p - upper) + relu(lower - p))
+  """float [], SLS-mlp's loss: mean(b relu(p - upper) + relu(lower - p))
   over the photo's pixels (0 for a pixel between the quantiles), plus
   lc.weight_reg x max|W1| x max|W2|, which bounds the MLP's Lipschitz
-  constant (smooth in the features)."""
+  constant (smooth in the features). b = 1 (SLS-mlp), or with lc.balance
+  the view's inlier labels over its outlier labels, so both classes weigh
+  the same."""
   p = predict(params, feats)
-  per_pixel = jax.nn.relu(p - upper) + jax.nn.relu(lower - p)
+  outlier = 1.0 - upper
+  if valid is not None:
+    lower, outlier = lower * valid, outlier * valid
+  b = (jax.lax.stop_gradient(jnp.sum(lower) / jnp.maximum(jnp.sum(outlier),
+                                                          1.0))
+       if lc.balance else 1.0)
+  per_pixel = b * outlier * jax.nn.relu(p) + jax.nn.relu(lower - p)
   if valid is None:
     data = jnp.mean(per_pixel)
   else:

@@ -26,6 +26,13 @@ from clipgs_jax import residual
 # The combination rule: a pixel the residual test calls transient stays
 # transient only where the semantic map's p(transient) exceeds this.
 SEMANTIC_GATE = 0.5
+# The learned map calls a pixel transient where p(inlier) is under this.
+# The map is this verdict, 0 or 1, as the residual map: the evidence and
+# the opacity loss read it. Read soft, 1 - p (0.02-0.05 on every static
+# pixel of bird persistent at step 500) gave every Gaussian a small s_j,
+# and Adam's normalised opacity steps took the whole model down (test
+# PSNR 16.4 -> 9.5 from reg_start); the loss keeps SLS-mlp's soft weight.
+LEARNED_CUT = 0.5
 
 # The residual map's steps in the order they apply (_test's, then _gates');
 # a map skips the steps its source and config do not have.
@@ -46,8 +53,9 @@ class ResidualSource:
     num_regions: the regions' label count (static).
     pixel_features: float32 [V, H, W, F] or None: each training photo's
       per-pixel features (learned.pixel_features); given, the map is the
-      learned map, the classifier's 1 - p(inlier) (the classifier is
-      TrainState.maps.classifier), voted over the regions if any.
+      learned map, transient where the classifier's p(inlier) <
+      LEARNED_CUT (the classifier is TrainState.maps.classifier), voted
+      over the regions if any.
   """
   semantic: jax.Array | None = None
   labels: jax.Array | None = None
@@ -62,10 +70,10 @@ class ResidualMap:
   """One step's residual map.
 
   Attributes:
-    transient: float32 [H, W] in {0, 1} (the learned map: in [0, 1]), the
-      map m (1 = transient).
+    transient: float32 [H, W] in {0, 1}, the map m (1 = transient).
     loss_weight: float32 [H, W] in [0, 1], the per-pixel weight of the
-      photometric loss: 1 - m, with the warm-up's sampled pixels kept.
+      photometric loss: 1 - m (the learned map: p(inlier) where m is 0),
+      with the warm-up's sampled pixels kept.
     residual: float32 [H, W], mean_c |render - photo|.
   """
   transient: jax.Array
@@ -79,22 +87,31 @@ def _test(source: ResidualSource, stats: residual.ResidualState,
   """The residual test's steps, each float32 [H, W] in {0, 1} (1 =
   transient so far), in order: "threshold" (the residual at or above the
   threshold), "rule" (the 3x3 or patch rule: residual.inliers), with pixel
-  features "learned" (the classifier's 1 - p(inlier), in [0, 1], which
+  features "learned" (the classifier's p(inlier) < LEARNED_CUT, which
   replaces the rule's verdict) and, with feature regions, "vote" (each
   region's majority); the last is the test's verdict."""
   steps = {"threshold": (res >= stats.threshold).astype(jnp.float32)}
   inlier = residual.inliers(res, stats.threshold, rc.rule, valid)
   steps["rule"] = 1.0 - inlier
   if source.pixel_features is not None:
-    p = learned.predict(stats.classifier.params,
-                        source.pixel_features[view])
-    # Outside the photo: neither inlier nor transient, as the rule's.
-    inlier = p if valid is None else p * valid
-    steps["learned"] = 1.0 - p if valid is None else (1.0 - p) * valid
+    p = _inlier_probability(source, stats, view, valid)
+    inlier = (p >= LEARNED_CUT).astype(jnp.float32)
+    steps["learned"] = 1.0 - inlier
+    if valid is not None:
+      # Outside the photo: neither inlier nor transient, as the rule's.
+      inlier, steps["learned"] = inlier * valid, steps["learned"] * valid
   if source.labels is not None:
     steps["vote"] = features.vote(inlier, source.labels[view],
                                   source.num_regions, rc.vote)
   return steps
+
+
+def _inlier_probability(source: ResidualSource,
+                        stats: residual.ResidualState, view: jax.Array,
+                        valid: jax.Array | None) -> jax.Array:
+  """float32 [H, W], the learned map's p(inlier), 1 outside the photo."""
+  p = learned.predict(stats.classifier.params, source.pixel_features[view])
+  return p if valid is None else 1.0 - (1.0 - p) * valid
 
 
 def _gates(source: ResidualSource, view: jax.Array,
@@ -168,11 +185,13 @@ def residual_map(source: ResidualSource, stats: residual.ResidualState,
                                    rc.warmup)
     dropped = 1.0 - kept
   else:
-    # The learned map weights the loss by p (a soft map), and the warm-up
+    # SLS-mlp weights the loss by p, a transient pixel's by 0; the warm-up
     # keeps its sampled pixels whole.
+    weight = (1.0 - transient) * _inlier_probability(source, stats, view,
+                                                     valid)
     kept = residual.sample_inliers(jnp.zeros_like(transient), step, key,
                                    rc.warmup)
-    dropped = transient * (1.0 - kept)
+    dropped = (1.0 - weight) * (1.0 - kept)
   for gate in _gates(source, view, rc, valid, alpha).values():
     transient, dropped = transient * gate, dropped * gate
   if rc.min_share > 0:
