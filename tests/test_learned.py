@@ -104,6 +104,24 @@ class ClassifierTest(absltest.TestCase):
     self.assertTrue(np.all(p[~transient] > 0.8), p)
     self.assertTrue(np.all(p[transient] < 0.2), p)
 
+  def test_the_map_is_the_verdict_and_the_loss_weight_is_p(self):
+    # A classifier that says p = q everywhere: the map is 1 where q < 0.5,
+    # and the loss weighs a pixel by q where the map is 0, by 0 where 1.
+    feats = jnp.zeros((1, 4, 5, learned.feature_dims(LC)))
+    source = map_sources.ResidualSource(pixel_features=feats)
+    photo = jnp.zeros((4, 5, 3))
+    rc = dataclasses.replace(RC, warmup=0.0, min_alpha=0.0, min_share=0.0)
+    for q, transient, weight in ((0.8, 0.0, 0.8), (0.3, 1.0, 0.0)):
+      clf = learned.init(LC, jax.random.key(0))
+      params = jax.tree.map(jnp.zeros_like, clf.params)
+      params["b2"] = jnp.full((1,), np.log(q / (1 - q)), jnp.float32)
+      stats = residual.ResidualState.initial(clf.replace(params=params))
+      m = map_sources.residual_map(source, stats, jnp.int32(0), photo,
+                                   photo, jnp.int32(0), jax.random.key(0),
+                                   rc)
+      np.testing.assert_allclose(m.transient, transient)
+      np.testing.assert_allclose(m.loss_weight, weight, rtol=1e-5)
+
   def test_pixel_features_share_one_basis(self):
     rng = np.random.default_rng(3)
     photos = [rng.random((24, 40, 3)).astype(np.float32) for _ in range(2)]
