@@ -35,7 +35,8 @@ HOST_ONLY = _HostOnly()
 _HOST_TRAIN_FIELDS = ("seed", "log_every", "eval_every", "checkpoint_every")
 # Fields, by section, that the train step does not read: the prune rule (its
 # own jitted function, guidance.prune), and what builds the scorer
-# (guidance.make_scorer), which the step gets as an argument.
+# (guidance.make_scorer), which the step gets as an argument, and the
+# classifier's construction (learned.init).
 NOT_IN_STEP = {
     "semantic": ("prune", "tau", "n_min", "alpha_min", "rare_needs_evidence",
                  "prune_harm", "prune_start", "prune_every",
@@ -43,6 +44,9 @@ NOT_IN_STEP = {
                  "dense_input_size", "oracle_saturation"),
     "pixel": ("tau_p",),
     "residual": ("features",),
+    # The classifier's sizes are its arrays' shapes; the features are the
+    # scorer's.
+    "learned": ("net", "dims", "hidden", "frequencies"),
 }
 
 

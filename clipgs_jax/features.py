@@ -111,23 +111,32 @@ def _principal(f: jax.Array, dims: int) -> jax.Array:
   return (x @ basis).reshape(f.shape[:-1] + (dims,))
 
 
-def _tap_features(photo, params, c: Clustering) -> jax.Array:
-  """float [H, W, len(taps) * dims], the backbone's taps at the photo's
-  pixels: each tap's channel vectors L2-normalised (as LPIPS compares them),
-  projected, upsampled and weighted 1/sqrt(len(taps)), so a pixel's feature
-  distance to another is at most 2."""
-  module, _ = load_backbone(c.net)
+def backbone_taps(photo, params, net: str, taps: tuple[int, ...],
+                  backbone_side: int) -> list[jax.Array]:
+  """[float [h_t, w_t, C_t] for t in taps], the backbone's ReLU outputs of
+  one photo (its longer side resized to `backbone_side`), each channel
+  vector L2-normalised, as LPIPS compares them. Jittable (net, taps and
+  side static)."""
+  module, _ = load_backbone(net)
   h, w = photo.shape[:2]
-  scale = c.backbone_side / max(h, w)
+  scale = backbone_side / max(h, w)
   size = (max(MIN_BACKBONE_SIDE, round(h * scale)),
           max(MIN_BACKBONE_SIDE, round(w * scale)))
   x = jax.image.resize(photo, size + (3,), "linear")
   x = (2.0 * x - 1.0 - _SHIFT) / _SCALE
   outs = module.apply({"params": params}, x[None])
+  return [outs[t][0] / (jnp.linalg.norm(outs[t][0], axis=-1, keepdims=True)
+                        + _NORM_EPS) for t in taps]
+
+
+def _tap_features(photo, params, c: Clustering) -> jax.Array:
+  """float [H, W, len(taps) * dims], the backbone's taps at the photo's
+  pixels: each tap's channel vectors L2-normalised (as LPIPS compares them),
+  projected, upsampled and weighted 1/sqrt(len(taps)), so a pixel's feature
+  distance to another is at most 2."""
+  h, w = photo.shape[:2]
   feats = []
-  for t in c.taps:
-    f = outs[t][0]
-    f = f / (jnp.linalg.norm(f, axis=-1, keepdims=True) + _NORM_EPS)
+  for f in backbone_taps(photo, params, c.net, c.taps, c.backbone_side):
     # Projected before the upsampling, which is linear and so commutes.
     f = _principal(f, c.dims)
     feats.append(jax.image.resize(f, (h, w, f.shape[-1]), "linear"))

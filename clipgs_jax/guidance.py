@@ -135,8 +135,13 @@ def make_scorer(cfg: config_lib.Config, scene, *,
   sem = cfg.semantic
   if not sem.enabled:
     return None
-  if sem.scorer == "residual":
-    return _residual_source(None, cfg.residual, scene)
+  if sem.scorer in ("residual", "learned"):
+    source = _residual_source(None, cfg.residual, scene)
+    if sem.scorer == "residual":
+      return source
+    return source.replace(pixel_features=map_sources.learned_features(
+        scene.train.images, cfg.learned, getattr(scene.train, "sizes",
+                                                 None)))
   if sem.scorer in ("oracle", "uniform", "oracle_patch"):
     masks = scene.train.masks
     if masks is None:

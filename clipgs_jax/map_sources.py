@@ -20,16 +20,24 @@ import numpy as np
 
 from clipgs_jax import config as config_lib
 from clipgs_jax import features
+from clipgs_jax import learned
 from clipgs_jax import residual
 
 # The combination rule: a pixel the residual test calls transient stays
 # transient only where the semantic map's p(transient) exceeds this.
 SEMANTIC_GATE = 0.5
+# The learned map calls a pixel transient where p(inlier) is under this.
+# The map is this verdict, 0 or 1, as the residual map: the evidence and
+# the opacity loss read it. Read soft, 1 - p (0.02-0.05 on every static
+# pixel of bird persistent at step 500) gave every Gaussian a small s_j,
+# and Adam's normalised opacity steps took the whole model down (test
+# PSNR 16.4 -> 9.5 from reg_start); the loss keeps SLS-mlp's soft weight.
+LEARNED_CUT = 0.5
 
 # The residual map's steps in the order they apply (_test's, then _gates');
 # a map skips the steps its source and config do not have.
-STAGES = ("threshold", "rule", "vote", "semantic", "alpha", "valid",
-          "share")
+STAGES = ("threshold", "rule", "learned", "vote", "semantic", "alpha",
+          "valid", "share")
 
 
 @flax.struct.dataclass
@@ -43,11 +51,18 @@ class ResidualSource:
       (features.regions), which take the majority verdict of the residual
       test inside them.
     num_regions: the regions' label count (static).
+    pixel_features: float32 [V, H, W, F] or None: each training photo's
+      per-pixel features (learned.pixel_features); given, the map is the
+      learned map, transient where the classifier's p(inlier) <
+      LEARNED_CUT (the classifier is TrainState.maps.classifier), voted
+      over the regions if any.
   """
   semantic: jax.Array | None = None
   labels: jax.Array | None = None
   num_regions: int = flax.struct.field(pytree_node=False, default=0)
-  per_view = ("semantic", "labels")   # one entry per view (sharding.py)
+  pixel_features: jax.Array | None = None
+  # One entry per view (sharding.py).
+  per_view = ("semantic", "labels", "pixel_features")
 
 
 @flax.struct.dataclass
@@ -56,8 +71,9 @@ class ResidualMap:
 
   Attributes:
     transient: float32 [H, W] in {0, 1}, the map m (1 = transient).
-    loss_weight: float32 [H, W] in {0, 1}, the per-pixel weight of the
-      photometric loss: 1 - m, with the warm-up's sampled pixels kept.
+    loss_weight: float32 [H, W] in [0, 1], the per-pixel weight of the
+      photometric loss: 1 - m (the learned map: p(inlier) where m is 0),
+      with the warm-up's sampled pixels kept.
     residual: float32 [H, W], mean_c |render - photo|.
   """
   transient: jax.Array
@@ -70,16 +86,32 @@ def _test(source: ResidualSource, stats: residual.ResidualState,
           valid: jax.Array | None) -> dict[str, jax.Array]:
   """The residual test's steps, each float32 [H, W] in {0, 1} (1 =
   transient so far), in order: "threshold" (the residual at or above the
-  threshold), "rule" (the 3x3 or patch rule: residual.inliers) and, with
-  feature regions, "vote" (each region's majority); the last is the test's
-  verdict."""
+  threshold), "rule" (the 3x3 or patch rule: residual.inliers), with pixel
+  features "learned" (the classifier's p(inlier) < LEARNED_CUT, which
+  replaces the rule's verdict) and, with feature regions, "vote" (each
+  region's majority); the last is the test's verdict."""
   steps = {"threshold": (res >= stats.threshold).astype(jnp.float32)}
   inlier = residual.inliers(res, stats.threshold, rc.rule, valid)
   steps["rule"] = 1.0 - inlier
+  if source.pixel_features is not None:
+    p = _inlier_probability(source, stats, view, valid)
+    inlier = (p >= LEARNED_CUT).astype(jnp.float32)
+    steps["learned"] = 1.0 - inlier
+    if valid is not None:
+      # Outside the photo: neither inlier nor transient, as the rule's.
+      inlier, steps["learned"] = inlier * valid, steps["learned"] * valid
   if source.labels is not None:
     steps["vote"] = features.vote(inlier, source.labels[view],
                                   source.num_regions, rc.vote)
   return steps
+
+
+def _inlier_probability(source: ResidualSource,
+                        stats: residual.ResidualState, view: jax.Array,
+                        valid: jax.Array | None) -> jax.Array:
+  """float32 [H, W], the learned map's p(inlier), 1 outside the photo."""
+  p = learned.predict(stats.classifier.params, source.pixel_features[view])
+  return p if valid is None else 1.0 - (1.0 - p) * valid
 
 
 def _gates(source: ResidualSource, view: jax.Array,
@@ -148,9 +180,18 @@ def residual_map(source: ResidualSource, stats: residual.ResidualState,
   """
   res = residual.residual(render, photo)
   transient = list(_test(source, stats, view, res, rc, valid).values())[-1]
-  kept = residual.sample_inliers(1.0 - transient, step, key,
-                                 rc.warmup)
-  dropped = 1.0 - kept
+  if source.pixel_features is None:
+    kept = residual.sample_inliers(1.0 - transient, step, key,
+                                   rc.warmup)
+    dropped = 1.0 - kept
+  else:
+    # SLS-mlp weights the loss by p, a transient pixel's by 0; the warm-up
+    # keeps its sampled pixels whole.
+    weight = (1.0 - transient) * _inlier_probability(source, stats, view,
+                                                     valid)
+    kept = residual.sample_inliers(jnp.zeros_like(transient), step, key,
+                                   rc.warmup)
+    dropped = (1.0 - weight) * (1.0 - kept)
   for gate in _gates(source, view, rc, valid, alpha).values():
     transient, dropped = transient * gate, dropped * gate
   if rc.min_share > 0:
@@ -205,6 +246,20 @@ def in_stage_order(stages: dict) -> dict:
   STAGES' order, the last being the map: jax's pytrees (jit outputs,
   jax.tree.map) sort dict keys, which loses it."""
   return {k: stages[k] for k in STAGES if k in stages}
+
+
+def learned_features(images, lc, sizes=None) -> jax.Array:
+  """float32 [V, H, W, F], every training photo's per-pixel features for
+  the learned map (learned.pixel_features, once per photo); with `sizes`
+  (int [V, 2]) each photo's alone, 0 on the canvas around it."""
+  if sizes is None:
+    return jnp.asarray(np.stack(learned.pixel_features(images, lc)))
+  feats = learned.pixel_features(
+      [im[:h, :w] for im, (w, h) in zip(images, sizes)], lc)
+  out = np.zeros(np.shape(images)[:3] + (feats[0].shape[-1],), np.float32)
+  for o, f in zip(out, feats):
+    o[:f.shape[0], :f.shape[1]] = f
+  return jnp.asarray(out)
 
 
 def feature_regions(images, net: str, sizes=None) -> tuple[jax.Array, int]:

@@ -19,6 +19,8 @@ The running statistics are a `ResidualState` in the train state, so a
 resumed run continues bit for bit; their size is fixed at construction.
 """
 
+from typing import Any
+
 import flax.struct
 import jax
 import jax.numpy as jnp
@@ -44,14 +46,18 @@ class ResidualState:
     histogram: float32 [HISTOGRAM_BINS], decayed counts of the residuals of
       past steps' pixels over [0, 1].
     threshold: float32 [], the inlier threshold the next step uses.
+    classifier: the learned map's classifier (learned.Classifier), trained
+      on this test's confident pixels, or None (the residual map).
   """
   histogram: jax.Array
   threshold: jax.Array
+  classifier: Any = None
 
   @classmethod
-  def initial(cls) -> "ResidualState":
+  def initial(cls, classifier: Any = None) -> "ResidualState":
     return cls(histogram=jnp.zeros((HISTOGRAM_BINS,), jnp.float32),
-               threshold=jnp.float32(INITIAL_THRESHOLD))
+               threshold=jnp.float32(INITIAL_THRESHOLD),
+               classifier=classifier)
 
 
 def residual(render: jax.Array, photo: jax.Array) -> jax.Array:
@@ -64,7 +70,7 @@ def _bins(res: jax.Array) -> jax.Array:
                   HISTOGRAM_BINS - 1)
 
 
-def _quantile(cumulative: jax.Array, q: float) -> jax.Array:
+def histogram_quantile(cumulative: jax.Array, q: float) -> jax.Array:
   """float32 [], the lower edge of the first bin whose cumulative count
   reaches q of the total (a residual strictly below it is under q)."""
   first = jnp.argmax(cumulative >= q * cumulative[-1])
@@ -107,13 +113,13 @@ def update(state: ResidualState, res: jax.Array | None = None, *,
   step_counts = counts(res) if histogram is None else histogram
   histogram = decay * state.histogram + step_counts
   cumulative = jnp.cumsum(histogram)
-  threshold = _quantile(cumulative, quantile)
+  threshold = histogram_quantile(cumulative, quantile)
   if median_factor > 0:
     threshold = jnp.maximum(threshold,
-                            median_factor * _quantile(cumulative, 0.5))
+                            median_factor * histogram_quantile(cumulative, 0.5))
   if minimum > 0:
     threshold = jnp.maximum(threshold, jnp.float32(minimum))
-  return ResidualState(histogram=histogram, threshold=threshold)
+  return state.replace(histogram=histogram, threshold=threshold)
 
 
 def _box3(x: jax.Array) -> jax.Array:

@@ -162,6 +162,9 @@ def semantic_label(cfg: config_lib.Config) -> str:
                else ", no early uniformity gate")
     if sem.scorer == "residual":
       return f"residual map ({rule}, no weights, no oracle)" + variant
+    if sem.scorer == "learned":
+      return (f"learned map ({cfg.learned.net} features, trained on the "
+              f"residual test: {rule}, no oracle)" + variant)
     if rc.with_semantic:
       variant += f", gating the residual map ({rule})"
     if sem.scorer == "oracle_patch":
@@ -284,17 +287,14 @@ def train_and_evaluate(cfg: config_lib.Config, workdir: str, *,
 
 
 def check_inputs(cfg: config_lib.Config, clip_weights: str | None) -> None:
-  """The checks of a run's inputs that read no scene, photo or weights:
-  run first, so that their error is the only line a bad command prints.
+  """The checks of a run's inputs beyond its config's (config.check) that
+  read no scene, photo or weights: run first, so that their error is the
+  only line a bad command prints.
 
   Raises:
-    app.UsageError: data.background is no BACKGROUNDS name, or a CLIP
-      scorer has no weights (flag or environment) or they do not exist.
+    app.UsageError: a CLIP scorer has no weights (flag or environment) or
+      they do not exist.
   """
-  try:
-    scene_lib.check_background(cfg.data.background)
-  except ValueError as e:
-    raise app.UsageError(str(e)) from e
   if cfg.semantic.scorer != "clip":
     return
   # Only a CLIP scorer imports the clip package.

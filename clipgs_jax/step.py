@@ -18,7 +18,8 @@ then the step combines them as one optimisation step:
     saw the Gaussian, max_radius the largest radius of the step;
   * semantic evidence accumulates every view of the batch (each view's
     increment, summed), and the residual map's histogram takes every
-    view's residuals before its one update per step;
+    view's residuals before its one update per step; the learned map's
+    classifier takes one Adam step on the mean of its views' gradients;
   * the step counter counts batches, so every schedule (learning rates,
     densification, SH degree, the semantic schedule) counts optimisation
     steps.
@@ -143,7 +144,7 @@ def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
       metrics.update(extra, semantic_loss=vp.terms["semantic_loss"])
       if vp.rmap is not None:
         hist = residual_lib.counts(vp.rmap.residual, valid)
-    return (vp.grads, dens, evidence, hist), metrics
+    return (vp.grads, dens, evidence, hist, vp.classifier_grad), metrics
 
   if local == 1:
     sums, per_view = one_view(0)
@@ -166,13 +167,16 @@ def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
                  capacity),
              (jnp.zeros((residual_lib.HISTOGRAM_BINS,), jnp.float32)
               if cfg.uses_residual and scorer is not None
-              else None))
+              else None),
+             (jax.tree.map(jnp.zeros_like, state.maps.classifier.params)
+              if cfg.uses_learned and scorer is not None else None))
     sums, per_view = jax.lax.scan(body, zeros, jnp.arange(local))
-  grads, dens, evidence, hist = sums
+  grads, dens, evidence, hist, classifier_grad = sums
   grad_accum, denom, max_radius = dens.grad_accum, dens.denom, dens.max_radius
   if across:
-    grads, grad_accum, denom, evidence, hist = jax.lax.psum(
-        (grads, grad_accum, denom, evidence, hist), sharding.AXIS)
+    grads, grad_accum, denom, evidence, hist, classifier_grad = jax.lax.psum(
+        (grads, grad_accum, denom, evidence, hist, classifier_grad),
+        sharding.AXIS)
     max_radius = jax.lax.pmax(max_radius, sharding.AXIS)
     per_view = jax.lax.all_gather(per_view, sharding.AXIS, tiled=True)
 
@@ -185,7 +189,7 @@ def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
   if evidence is not None:
     semantic_stats = jax.tree.map(jnp.add, state.semantic, evidence)
   if hist is not None:
-    maps = view_lib.update_maps(maps, cfg.residual, hist)
+    maps = view_lib.update_maps(maps, cfg, hist, classifier_grad)
   metrics = {k: (jnp.mean(v) if k in _MEAN_KEYS else v)
              for k, v in per_view.items()}
   metrics.update(

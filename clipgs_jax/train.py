@@ -13,6 +13,7 @@ from clipgs_jax import config as config_lib
 from clipgs_jax import gaussians
 from clipgs_jax import guidance
 from clipgs_jax import initialize
+from clipgs_jax import learned
 from clipgs_jax import loop
 from clipgs_jax import optim
 from clipgs_jax import residual as residual_lib
@@ -24,9 +25,10 @@ from clipgs_jax.data import scene as scene_lib
 
 _log = logging.getLogger(__name__)
 
-# The fold_in tag of densification's stream of the run's key (view.py
-# holds the others).
+# The fold_in tags of densification's stream of the run's key and of the
+# learned map's initial weights (view.py holds the others).
 _DENSIFY_STREAM = 3
+_CLASSIFIER_STREAM = 6
 
 CHECKPOINT_NAME = "checkpoint.npz"
 
@@ -48,8 +50,10 @@ def init_state(cfg: config_lib.Config, params: gaussians.GaussianParams,
       semantic=state_lib.SemanticStats.zeros(capacity),
       step=jnp.zeros((), jnp.int32),
       key=jax.random.key(cfg.train.seed),
-      maps=(residual_lib.ResidualState.initial()
-            if cfg.uses_residual else None))
+      maps=(residual_lib.ResidualState.initial(
+          learned.init(cfg.learned, jax.random.fold_in(
+              jax.random.key(cfg.train.seed), _CLASSIFIER_STREAM))
+          if cfg.uses_learned else None) if cfg.uses_residual else None))
 
 
 def resolve(cfg: config_lib.Config, scene) -> config_lib.Config:

@@ -12,6 +12,7 @@ from clipgs_jax import camera as camera_lib
 from clipgs_jax import config as config_lib
 from clipgs_jax import gaussians
 from clipgs_jax import guidance
+from clipgs_jax import learned
 from clipgs_jax import losses
 from clipgs_jax import map_sources
 from clipgs_jax import project
@@ -92,6 +93,8 @@ class ViewPass(NamedTuple):
       map (from the backward pass), or None.
     evidence_map: float [H, W], the static map the render summed per
       Gaussian (out.evidence), or None.
+    classifier_grad: the learned map's d loss / d classifier params of
+      this view (learned.gradient), or None.
   """
   loss: jax.Array
   out: rasterize.RenderOutput
@@ -102,6 +105,7 @@ class ViewPass(NamedTuple):
   grad2d: jax.Array
   probe_grad: jax.Array | None
   evidence_map: jax.Array | None
+  classifier_grad: dict[str, jax.Array] | None = None
 
 
 def render_and_grad(state: state_lib.TrainState, scorer,
@@ -187,8 +191,15 @@ def render_and_grad(state: state_lib.TrainState, scorer,
   else:
     (loss, (out, proj, terms, rmap)), (grads, grad2d) = jax.value_and_grad(
         loss_fn, argnums=(0, 1), has_aux=True)(state.params, offset, None)
+  classifier_grad = None
+  if dynamic and cfg.uses_learned:
+    # Labelled by the test on this step's residual, before the step's
+    # statistics update (as the map's own threshold).
+    classifier_grad = learned.gradient(
+        state.maps.classifier.params, scorer.pixel_features[view],
+        rmap.residual, state.maps, cfg.residual, cfg.learned, valid)
   return ViewPass(loss, out, proj, terms, rmap, grads, grad2d, probe_grad,
-                  evidence_map)
+                  evidence_map, classifier_grad)
 
 
 def reproduced_evidence(due, proj, cam, bg, cfg, evidence_map, image,
@@ -262,13 +273,21 @@ def semantic_increment(vp: ViewPass, scorer, *, view: jax.Array,
       zero, out.image, out.visible, weight, view, step, scorer, sem)
 
 
-def update_maps(maps: residual_lib.ResidualState,
-                rc: config_lib.ResidualConfig, histogram: jax.Array
+def update_maps(maps: residual_lib.ResidualState, cfg: config_lib.Config,
+                histogram: jax.Array,
+                classifier_grad: dict[str, jax.Array] | None = None
                 ) -> residual_lib.ResidualState:
   """The residual map's statistics after a step: residual.update with the
   run's threshold settings on the `histogram` of the step's residuals
-  (residual.counts summed over its views)."""
-  return residual_lib.update(maps, quantile=rc.quantile, decay=rc.decay,
+  (residual.counts summed over its views); with the learned map, its
+  classifier after one Adam step on `classifier_grad` (summed over the
+  views)."""
+  rc = cfg.residual
+  maps = residual_lib.update(maps, quantile=rc.quantile, decay=rc.decay,
                              median_factor=rc.median_factor,
                              minimum=rc.min_threshold,
                              histogram=histogram)
+  if classifier_grad is None:
+    return maps
+  return maps.replace(classifier=learned.apply(
+      maps.classifier, classifier_grad, cfg.learned, cfg.train.batch_size))

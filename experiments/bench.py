@@ -24,7 +24,9 @@ clip: the CLIP encoders, preprocessing, tokenizer and text cache, and
   (--scorers) the view scorers, on random weights.
 semantic: step-time overhead of guidance over the vanilla step.
 features: the feature regions of the first --repeats training photos
-  (per photo, compiled once) and their per-step vote (features.benchmark).
+  (per photo, compiled once) and their per-step vote (features.benchmark),
+  and the learned map's per-pixel features of the same photos
+  (learned.benchmark).
 views: views per second of B views per step on D devices (BxD), every
   variant in one process, timed round-robin, each step waited for and 10
   steps back to back (as training runs them); on a CPU the devices are
@@ -42,6 +44,7 @@ from clipgs_jax.lab import timing
 from clipgs_jax import cli
 from clipgs_jax import config as config_lib
 from clipgs_jax import features
+from clipgs_jax import learned
 from clipgs_jax.lab import batch_timing
 from clipgs_jax.lab import clip_timing
 from clipgs_jax.clip import dense
@@ -218,6 +221,8 @@ def _results():
     photos = scene_lib.load_scene(
         _SCENE.value, downscale=downscale).train.images[:repeats]
     yield dict(features.benchmark(photos), scene=_SCENE.value,
+               downscale=downscale)
+    yield dict(learned.benchmark(photos), scene=_SCENE.value,
                downscale=downscale)
   elif what == "views":
     _require_scene("views", "times a real scene")

@@ -174,8 +174,10 @@ def _loss_maps() -> None:
         + ", ".join(f"{k} {_fraction(pooled[k])}" for k in
                     ("precision", "recall", "iou") if k in pooled))
   if "stages" in pooled:
-    print("  recall after each step of the residual map: " + ", ".join(
-        f"{k} {_fraction(v['recall'])}" for k, v in pooled["stages"].items()))
+    print("  recall after each step of the residual map (P / R / IoU): "
+          + ", ".join(f"{k} {_fraction(v['precision'])} / "
+                      f"{_fraction(v['recall'])} / {_fraction(v['iou'])}"
+                      for k, v in pooled["stages"].items()))
   if "contrast" in pooled:
     c = pooled["contrast"]
     print(f"  transient pixels at least {c['threshold']:.3f} from what lies "

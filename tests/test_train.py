@@ -242,15 +242,19 @@ class EndToEndTest(absltest.TestCase):
 
   def test_steps_after_the_first_compile_and_transfer_nothing(self):
     # The loop dispatches steps back to back: after the first, a step of
-    # one view on one device, or of a guided run with the residual map,
-    # compiles nothing and moves nothing between host and device.
+    # one view on one device, or of a guided run with the residual or the
+    # learned map, compiles nothing and moves nothing between host and device.
     scene = synthetic_scene()
     residual = dataclasses.replace(
         TEST_CFG,
         semantic=config.SemanticConfig(scorer="residual", evidence="pixel",
                                        accumulate_start=0, reg_start=0),
         pixel=config.PixelConfig(loss_masking=True))
-    for cfg in (TEST_CFG, residual):
+    # The learned map: its classifier's update is in the step too.
+    learned = dataclasses.replace(
+        residual, semantic=dataclasses.replace(residual.semantic,
+                                               scorer="learned"))
+    for cfg in (TEST_CFG, residual, learned):
       cfg = train.resolve(cfg, scene)
       step_fn, lanes, state, scorer = step.for_scene(
           cfg, scene, train.initial_state(cfg, scene),

@@ -108,6 +108,8 @@ class BadValuesTest(parameterized.TestCase):
       ("downscale", {"data": {"downscale": 0}}, "--config.data.downscale=0"),
       ("tile_budget", {"render": {"tile_budget": -1}}, "tile_budget=-1"),
       ("split", {"data": {"train_split": "dirty"}}, "train_split=dirty"),
+      ("background", {"data": {"background": "grey"}},
+       "--config.data.background=grey is not one of white, black"),
       ("lpips", {"eval": {"lpips_net": "squeeze"}}, "lpips_net=squeeze"),
       ("no_scene", {"data": {"scene": "/nonexistent/scene"}},
        "does not exist; pass an existing folder"),

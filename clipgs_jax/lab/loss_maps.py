@@ -96,10 +96,11 @@ def stage_counts(stages: dict[str, np.ndarray], truth: np.ndarray,
 
 
 def stage_summary(counts: dict) -> dict:
-  """{step: {"recall", "masked_fraction"}} of summed stage_counts."""
+  """{step: {"precision", "recall", "iou", "masked_fraction"}} of summed
+  stage_counts (None where undefined)."""
   gt, pixels = counts["pixels"]
-  return {name: {"recall": float(hit / gt) if gt else None,
-                 "masked_fraction": float(masked / pixels)}
+  return {name: evaluation.confusion_scores((hit, masked - hit, gt - hit))
+          | {"masked_fraction": float(masked / pixels)}
           for name, (hit, masked) in counts.items() if name != "pixels"}
 
 

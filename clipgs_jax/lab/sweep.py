@@ -182,7 +182,8 @@ def _short_label(cfg: config_lib.Config) -> str:
   if sem.scorer in ("oracle", "uniform", "oracle_patch"):
     return "ORACLE-PIXEL (ground truth)" if sem.scorer == "oracle" else (
         sem.scorer.upper())
-  name = "dense CLIP" if sem.scorer == "clip" else "residual map"
+  name = {"clip": "dense CLIP", "learned": "learned map"}.get(
+      sem.scorer, "residual map")
   if sem.scorer == "clip" and cfg.residual.with_semantic:
     name += " + residual"
   return name + (" + features" if cfg.residual.features else "")

@@ -27,7 +27,6 @@ from clipgs_jax import losses
 from clipgs_jax import optim
 from clipgs_jax import project
 from clipgs_jax import rasterize
-from clipgs_jax import residual
 from clipgs_jax import step as step_lib
 from clipgs_jax import train
 from clipgs_jax.data import scene as scene_lib
@@ -350,7 +349,7 @@ def semantic_overhead(scene_path: str, downscale: int, *,
   masking; scenes with masks only); residual and residual+features (the
   residual map with loss masking, per pixel and voted over the photos'
   feature regions; the regions are computed before timing, once per
-  photo); clip/k=K (CLIP scorer with random weights, scoring every K-th
+  photo); learned (the learned map, its features computed before timing); clip/k=K (CLIP scorer with random weights, scoring every K-th
   step). Every guided variant scores every step with the opacity loss on.
   Each is compiled and warmed up over one full scoring cycle, then timed
   round-robin (one step each in turn, so a change in load shifts them all
@@ -384,13 +383,18 @@ def semantic_overhead(scene_path: str, downscale: int, *,
         base, semantic=dataclasses.replace(sem, evidence="pixel"),
         pixel=dataclasses.replace(base.pixel, loss_masking=True))
     variants["oracle_pixel"] = (cfg, guidance.make_scorer(cfg, scene))
-  for name, net in (("residual", ""), ("residual+features", "alex")):
+  scorer_s = {}
+  for name, kind, net in (("residual", "residual", ""),
+                          ("residual+features", "residual", "alex"),
+                          ("learned", "learned", "")):
     cfg = dataclasses.replace(
-        base, semantic=dataclasses.replace(sem, scorer="residual",
+        base, semantic=dataclasses.replace(sem, scorer=kind,
                                            evidence="pixel"),
         pixel=dataclasses.replace(base.pixel, loss_masking=True),
         residual=dataclasses.replace(base.residual, features=net))
+    tic = time.perf_counter()
     variants[name] = (cfg, guidance.make_scorer(cfg, scene))
+    scorer_s[name] = time.perf_counter() - tic
   for k in score_every:
     cfg = dataclasses.replace(base, semantic=dataclasses.replace(
         sem, scorer="clip", clip_variant=clip_variant, score_every=k))
@@ -401,7 +405,7 @@ def semantic_overhead(scene_path: str, downscale: int, *,
   for name, (cfg, scorer) in variants.items():
     state = jax.tree.map(jnp.copy, state0)
     if cfg.uses_residual:
-      state = state.replace(maps=residual.ResidualState.initial())
+      state = state.replace(maps=train.initial_state(cfg, scene).maps)
     fn, lanes, state, scorer = step_lib.for_scene(cfg, scene, state, scorer)
     tic = time.perf_counter()
     state, _ = jax.block_until_ready(fn(state, lanes, scorer))
@@ -435,6 +439,10 @@ def semantic_overhead(scene_path: str, downscale: int, *,
         "overhead_wall": round(mw / ref_wall - 1, 4),
         "overhead_cpu": round(mc / ref_cpu - 1, 4),
         "compile_s": round(compile_s[name], 1),
+        # Building the scorer (regions, the learned map's features), per
+        # training photo, compile included.
+        "scorer_s_per_photo": (round(scorer_s[name] / len(scene.train.images),
+                                     3) if name in scorer_s else None),
         "clip": clip_variant if name.startswith("clip") else None,
         "device": jax.devices()[0].device_kind})
   return out

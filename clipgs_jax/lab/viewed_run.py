@@ -17,6 +17,7 @@ from clipgs_jax import config as config_lib
 from clipgs_jax import evaluation
 from clipgs_jax import gaussians
 from clipgs_jax import guidance
+from clipgs_jax import learned
 from clipgs_jax import ply
 from clipgs_jax import residual
 from clipgs_jax import run as run_lib
@@ -149,9 +150,15 @@ def load(path: str) -> ViewedRun:
           f.name: field("semantic/", f.name)[alive]
           for f in dataclasses.fields(state_lib.SemanticStats)})
     if cfg.uses_residual:
-      maps = residual.ResidualState(**{
-          f.name: field("maps/", f.name)
-          for f in dataclasses.fields(residual.ResidualState)})
+      # The learned map's classifier: its weights (no Adam state).
+      prefix = f"{checkpoint.STATE_PREFIX}maps/classifier/params/"
+      weights = {k[len(prefix):]: v for k, v in arrays.items()
+                 if k.startswith(prefix)}
+      maps = residual.ResidualState(
+          histogram=field("maps/", "histogram"),
+          threshold=field("maps/", "threshold"),
+          classifier=(learned.Classifier(params=weights, opt_state=None)
+                      if weights else None))
     degree = int(sh.active_degree(int(field("step", "")),
                                   cfg.densify.sh_degree_every,
                                   cfg.gaussians.sh_degree))

@@ -323,6 +323,8 @@ def test_loss_map_report(residual_run):
   recalls = [stages[k]["recall"] for k in names]
   assert recalls == sorted(recalls, reverse=True)
   assert stages["share"]["recall"] == pytest.approx(quality["recall"])
+  for key in ("precision", "iou"):
+    assert stages["share"][key] == pytest.approx(quality[key])
   assert "recall after each step" in proc.stdout
   for name in out["worst"]["clean_most_masked"]:
     assert out["per_view"][name]["transient_fraction"] == 0.0
