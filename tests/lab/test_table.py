@@ -143,9 +143,9 @@ class FormatTest(absltest.TestCase):
     cfgs = {row: _row_cfg(row) for row in _table_cd().sweep.rows.split(",")}
     self.assertEqual(list(cfgs), [
         "vanilla", "oracle", "oracle_pixel", "oracle_pixel_masked", "clip",
-        "clip_pixel", "residual", "residual_features",
+        "clip_pixel", "residual", "residual_features", "learned",
         "oracle_patch_residual", "clip_residual", "clean", "residual_clean",
-        "residual_features_clean"])
+        "residual_features_clean", "learned_clean"])
     bench = config_file.named("benchmark")
     sem = bench.semantic      # scaled to the steps
     self.assertEqual(cfgs["vanilla"].semantic.scorer, "off")
@@ -170,9 +170,13 @@ class FormatTest(absltest.TestCase):
                      "oracle_patch")
     self.assertEqual(cfgs["residual_features_clean"].data.train_split,
                      "clean")
-    for section in ("semantic", "pixel", "residual"):
-      self.assertEqual(getattr(cfgs["residual_features_clean"], section),
-                       getattr(cfgs["residual_features"], section))
+    for row, control in (("residual_features", "residual_features_clean"),
+                         ("learned", "learned_clean")):
+      for section in ("semantic", "pixel", "residual", "learned"):
+        self.assertEqual(getattr(cfgs[control], section),
+                         getattr(cfgs[row], section), control)
+    self.assertEqual(cfgs["learned"].semantic.scorer, "learned")
+    self.assertTrue(cfgs["learned"].pixel.loss_masking)
     for row, cfg in cfgs.items():   # everything else is the benchmark's
       self.assertEqual(cfg.render, bench.render)
       self.assertEqual(cfg.train, bench.train)
