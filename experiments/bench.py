@@ -135,16 +135,12 @@ _DEVICE_LANES = flags.DEFINE_enum(
 flags.mark_flag_as_required("bench")
 
 
-def _floats(values) -> list[float] | None:
-  try:
-    return [float(x) for x in values]
-  except ValueError:
-    return None
-
-
 def _radius_ok(values) -> bool:
-  r = _floats(values)
-  return r is not None and len(r) == 2 and 0 < r[0] <= r[1]
+  try:
+    lo, hi = (float(x) for x in values)
+  except ValueError:
+    return False
+  return 0 < lo <= hi
 
 
 def _sizes_ok(values) -> bool:
@@ -220,10 +216,8 @@ def _results():
     downscale = _value("bench_downscale", _DOWNSCALE)
     photos = scene_lib.load_scene(
         _SCENE.value, downscale=downscale).train.images[:repeats]
-    yield dict(features.benchmark(photos), scene=_SCENE.value,
-               downscale=downscale)
-    yield dict(learned.benchmark(photos), scene=_SCENE.value,
-               downscale=downscale)
+    for benchmark in (features.benchmark, learned.benchmark):
+      yield dict(benchmark(photos), scene=_SCENE.value, downscale=downscale)
   elif what == "views":
     _require_scene("views", "times a real scene")
     yield from batch_timing.views_per_second(
