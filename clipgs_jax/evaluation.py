@@ -14,7 +14,7 @@ from clipgs_jax import gaussians
 from clipgs_jax import metrics as metrics_lib
 from clipgs_jax import rasterize
 from clipgs_jax import sharding
-from clipgs_jax.data import scene as scene_lib
+from clipgs_jax.data import canvas
 
 
 # A pixel is predicted transient where the flagged Gaussians cover more than
@@ -53,7 +53,7 @@ def renders(params: gaussians.GaussianParams, alive, views,
   Yields:
     (float32 [h, w, 3] colour clipped to [0, 1], float32 [h, w] alpha,
     int32 [] tile-list entries dropped) per view, in order; (w, h) is the
-    view's photo size (scene_lib.photo_size).
+    view's photo size (canvas.photo_size).
   """
   render = _render_fn(cfg.render)
   bg = jnp.asarray(cfg.train.background, jnp.float32)
@@ -62,7 +62,7 @@ def renders(params: gaussians.GaussianParams, alive, views,
   for i in range(len(views.images)):
     image, alpha, dropped = render(params, alive,
                                    camera_lib.camera_at(cams, i), bg, degree)
-    yield (scene_lib.crop(views, i, image), scene_lib.crop(views, i, alpha),
+    yield (canvas.crop(views, i, image), canvas.crop(views, i, alpha),
            dropped)
 
 
@@ -96,7 +96,7 @@ def evaluate(params: gaussians.GaussianParams, alive, views,
       per_image["lpips"] = []
   images = []
   for i, (pred, _, _) in enumerate(renders(params, alive, views, cfg)):
-    target = jnp.asarray(scene_lib.crop(views, i, views.images[i]),
+    target = jnp.asarray(canvas.crop(views, i, views.images[i]),
                          jnp.float32)
     if psnr_only:
       values = {"psnr": metrics_lib.psnr(pred, target)}
@@ -180,7 +180,7 @@ def transient_mask_iou(params: gaussians.GaussianParams, views,
   if views.masks is None:
     return None
   num = int(np.shape(params.means)[0])
-  masks = [scene_lib.crop(views, i, m) for i, m in enumerate(views.masks)]
+  masks = [canvas.crop(views, i, m) for i, m in enumerate(views.masks)]
   if num == 0:
     alphas = [np.zeros(np.shape(m), np.float32) for m in masks]
   else:
@@ -282,10 +282,10 @@ def training_maps(params: gaussians.GaussianParams, alive, stats, scorer,
   cropped), and its ground-truth mask (bool, cropped), or None when the
   views have no masks (mask_quality's arguments)."""
   for i, name in enumerate(views.names):
-    m = jax.tree.map(lambda x, i=i: scene_lib.crop(views, i, x), view_map(
+    m = jax.tree.map(lambda x, i=i: canvas.crop(views, i, x), view_map(
         params, alive, stats, scorer, views, i, cfg, degree, stages))
     truth = (None if views.masks is None else
-             scene_lib.crop(views, i, np.asarray(views.masks[i], bool)))
+             canvas.crop(views, i, np.asarray(views.masks[i], bool)))
     yield name, m, truth
 
 

@@ -39,10 +39,11 @@ import numpy as np
 from clipgs_jax import compiled
 from clipgs_jax import config as config_lib
 from clipgs_jax import densify
+from clipgs_jax import guidance_config
 from clipgs_jax import map_sources
 from clipgs_jax import semantic
 from clipgs_jax import state as state_lib
-from clipgs_jax.data import scene as scene_lib
+from clipgs_jax.data import canvas
 
 # Keys of the per-step scores in the train step's metrics: image evidence
 # logs the view's scores, pixel evidence the mean of the view's map. Beside
@@ -55,12 +56,12 @@ MAP_KEYS = ("map_mean",)
 OPTIONAL_SCORE_KEYS = ("s_hat_s",)
 
 
-def per_step_value_keys(sem: config_lib.SemanticConfig) -> tuple[str, ...]:
+def per_step_value_keys(sem: guidance_config.SemanticConfig) -> tuple[str, ...]:
   """The per-step scores that fit logs for each scored step."""
   return MAP_KEYS if sem.localized else SCORE_KEYS
 
 
-def per_step_keys(sem: config_lib.SemanticConfig) -> tuple[str, ...]:
+def per_step_keys(sem: guidance_config.SemanticConfig) -> tuple[str, ...]:
   """Every per-step key of the train step's metrics (scores.jsonl), kept
   out of the training log."""
   return per_step_value_keys(sem) + ("view", "scored")
@@ -181,15 +182,15 @@ def make_scorer(cfg: config_lib.Config, scene, *,
   return clip_scorer.make(sem, clip_params)
 
 
-def _pixel_source(maps: jax.Array, rc: config_lib.ResidualConfig, scene):
+def _pixel_source(maps: jax.Array, rc: guidance_config.ResidualConfig, scene):
   """A semantic map per view: as it is, or gating the residual map."""
   if rc.with_semantic:
     return _residual_source(maps, rc, scene)
   return PixelMapScorer(maps=maps)
 
 
-def _residual_source(maps, rc: config_lib.ResidualConfig, scene
-                     ) -> map_sources.ResidualSource:
+def _residual_source(maps, rc: guidance_config.ResidualConfig,
+                     scene) -> map_sources.ResidualSource:
   """The residual map's scorer, with the photos' feature regions when
   rc.features names a backbone."""
   if not rc.features:
@@ -211,7 +212,7 @@ def per_photo(fn, arrays, sizes, fill=0) -> np.ndarray:
   """
   if sizes is None:
     return np.stack([np.asarray(fn(a)) for a in arrays])
-  return scene_lib.on_canvas(
+  return canvas.on_canvas(
       [np.asarray(fn(a[:h, :w])) for a, (w, h) in zip(arrays, sizes)],
       sizes, fill)
 
@@ -255,8 +256,8 @@ def dense_maps(dense_scorer, images, sizes=None) -> jax.Array:
   return jnp.asarray(maps, jnp.float32)
 
 
-def check_scorer(sem: config_lib.SemanticConfig, scorer, caller: str
-                 ) -> None:
+def check_scorer(sem: guidance_config.SemanticConfig, scorer,
+                 caller: str) -> None:
   """Raises unless a scorer is given exactly when `sem` is enabled."""
   if (scorer is not None) != sem.enabled:
     raise ValueError(
@@ -266,7 +267,8 @@ def check_scorer(sem: config_lib.SemanticConfig, scorer, caller: str
         "guidance.make_scorer(cfg, scene).")
 
 
-def scores_due(step: jax.Array, sem: config_lib.SemanticConfig) -> jax.Array:
+def scores_due(step: jax.Array,
+               sem: guidance_config.SemanticConfig) -> jax.Array:
   """bool []: the step that starts at `step` finished steps scores its view."""
   since = step - sem.accumulate_start
   return (since >= 0) & (since % sem.score_every == 0)
@@ -284,13 +286,11 @@ def opacity_regularizer(stats: state_lib.SemanticStats,
   return jnp.where((step >= sem.reg_start) & ~quiet, loss, 0.0)
 
 
-def score_and_accumulate(stats: state_lib.SemanticStats, image: jax.Array,
-                         visible: jax.Array, weight: jax.Array | None,
-                         view: jax.Array,
-                         step: jax.Array, scorer,
-                         sem: config_lib.SemanticConfig
-                         ) -> tuple[state_lib.SemanticStats,
-                                    dict[str, jax.Array]]:
+def score_and_accumulate(
+    stats: state_lib.SemanticStats, image: jax.Array, visible: jax.Array,
+    weight: jax.Array | None, view: jax.Array, step: jax.Array, scorer,
+    sem: guidance_config.SemanticConfig
+) -> tuple[state_lib.SemanticStats, dict[str, jax.Array]]:
   """Scores the rendered view when due and accumulates (eqs. 5-9).
 
   The scorer runs under `lax.cond`, so off-cadence steps skip it; their
@@ -419,11 +419,12 @@ def make_prune(cfg: config_lib.Config):
   return jax.jit(functools.partial(prune, cfg=cfg), donate_argnums=(0,))
 
 
-def _histogram_range(sem: config_lib.SemanticConfig) -> tuple[float, float]:
+def _histogram_range(
+    sem: guidance_config.SemanticConfig) -> tuple[float, float]:
   return (0.0, 1.0) if sem.localized else (0.0, 0.5 * sem.beta)
 
 
-def histogram_edges(sem: config_lib.SemanticConfig) -> list[float]:
+def histogram_edges(sem: guidance_config.SemanticConfig) -> list[float]:
   """The HISTOGRAM_BINS + 1 bin edges of the prune-event histogram."""
   return np.linspace(*_histogram_range(sem), HISTOGRAM_BINS + 1).tolist()
 

@@ -29,8 +29,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from clipgs_jax import config as config_lib
 from clipgs_jax import features
+from clipgs_jax import guidance_config
 from clipgs_jax import residual
 
 # The backbone taps read, and the side the photo is resized to: the feature
@@ -57,16 +57,17 @@ class Classifier:
   opt_state: Any
 
 
-def feature_dims(lc: config_lib.LearnedConfig) -> int:
+def feature_dims(lc: guidance_config.LearnedConfig) -> int:
   """int, the per-pixel feature dims `pixel_features` gives."""
   return len(TAPS) * lc.dims
 
 
-def _optimizer(lc: config_lib.LearnedConfig) -> optax.GradientTransformation:
+def _optimizer(
+    lc: guidance_config.LearnedConfig) -> optax.GradientTransformation:
   return optax.adam(lc.lr)
 
 
-def init(lc: config_lib.LearnedConfig, key: jax.Array) -> Classifier:
+def init(lc: guidance_config.LearnedConfig, key: jax.Array) -> Classifier:
   """A fresh classifier: PyTorch Linear's default initialisation (weights
   and biases uniform in +-1/sqrt(fan_in)), as SLS-mlp's, zero moments."""
   dims = feature_dims(lc) + 4 * lc.frequencies
@@ -110,11 +111,11 @@ def predict(params: dict[str, jax.Array], feats: jax.Array) -> jax.Array:
   return jax.nn.sigmoid(hidden @ params["w2"] + params["b2"])[..., 0]
 
 
-def confident(res: jax.Array, stats: residual.ResidualState,
-              rc: config_lib.ResidualConfig,
-              lc: config_lib.LearnedConfig,
-              valid: jax.Array | None = None
-              ) -> tuple[jax.Array, jax.Array]:
+def confident(res: jax.Array,
+              stats: residual.ResidualState,
+              rc: guidance_config.ResidualConfig,
+              lc: guidance_config.LearnedConfig,
+              valid: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
   """(lower, upper), float32 [H, W] in {0, 1}: the residual test's inlier
   masks (rc.rule) at the histogram's lc.inlier_quantile and at the larger
   of its lc.outlier_quantile and the running threshold. lower = 1 is a
@@ -131,8 +132,11 @@ def confident(res: jax.Array, stats: residual.ResidualState,
   return lower, upper
 
 
-def loss(params: dict[str, jax.Array], feats: jax.Array, lower: jax.Array,
-         upper: jax.Array, lc: config_lib.LearnedConfig,
+def loss(params: dict[str, jax.Array],
+         feats: jax.Array,
+         lower: jax.Array,
+         upper: jax.Array,
+         lc: guidance_config.LearnedConfig,
          valid: jax.Array | None = None) -> jax.Array:
   """float [], SLS-mlp's loss: mean(b relu(p - upper) + relu(lower - p))
   over the photo's pixels (0 for a pixel between the quantiles), plus
@@ -156,9 +160,12 @@ def loss(params: dict[str, jax.Array], feats: jax.Array, lower: jax.Array,
   return data + lc.weight_reg * reg
 
 
-def gradient(params: dict[str, jax.Array], feats: jax.Array,
-             res: jax.Array, stats: residual.ResidualState,
-             rc: config_lib.ResidualConfig, lc: config_lib.LearnedConfig,
+def gradient(params: dict[str, jax.Array],
+             feats: jax.Array,
+             res: jax.Array,
+             stats: residual.ResidualState,
+             rc: guidance_config.ResidualConfig,
+             lc: guidance_config.LearnedConfig,
              valid: jax.Array | None = None) -> dict[str, jax.Array]:
   """d loss / d params of one view, labelled by `confident` from its
   residual `res` (no gradient) and the step's running statistics."""
@@ -167,7 +174,7 @@ def gradient(params: dict[str, jax.Array], feats: jax.Array,
 
 
 def apply(clf: Classifier, grads: dict[str, jax.Array],
-          lc: config_lib.LearnedConfig, batch: int) -> Classifier:
+          lc: guidance_config.LearnedConfig, batch: int) -> Classifier:
   """One Adam step on the mean of the batch's views' gradients (`grads`,
   their sum), as the Gaussians take theirs."""
   grads = jax.tree.map(lambda g: g / batch, grads)
@@ -192,7 +199,8 @@ def _project(photo, weights, bases, net: str) -> jax.Array:
   return jnp.concatenate(out, -1) / np.sqrt(len(TAPS))
 
 
-def pixel_features(photos, lc: config_lib.LearnedConfig) -> list[np.ndarray]:
+def pixel_features(photos,
+                   lc: guidance_config.LearnedConfig) -> list[np.ndarray]:
   """[float32 [h, w, feature_dims(lc)] for each photo]: each tap of the
   lc.net backbone (L2-normalised channel vectors) centred and projected on
   the top lc.dims principal axes of that tap, upsampled to the photo and
@@ -229,8 +237,9 @@ def pixel_features(photos, lc: config_lib.LearnedConfig) -> list[np.ndarray]:
   return [np.asarray(_project(p, weights, bases, lc.net)) for p in photos]
 
 
-def benchmark(photos, lc: config_lib.LearnedConfig = config_lib.LearnedConfig()
-              ) -> dict:
+def benchmark(
+    photos, lc: guidance_config.LearnedConfig = guidance_config.LearnedConfig()
+) -> dict:
   """Seconds of `pixel_features` on `photos` (float [V, H, W, 3]): "wall_s"
   and "cpu_s" (this process's CPU time over all its threads) per photo,
   twice, so the second ("warm_*") excludes compiling and loading. Each

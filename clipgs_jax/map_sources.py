@@ -18,8 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from clipgs_jax import config as config_lib
 from clipgs_jax import features
+from clipgs_jax import guidance_config
 from clipgs_jax import learned
 from clipgs_jax import residual
 
@@ -82,7 +82,7 @@ class ResidualMap:
 
 
 def _test(source: ResidualSource, stats: residual.ResidualState,
-          view: jax.Array, res: jax.Array, rc: config_lib.ResidualConfig,
+          view: jax.Array, res: jax.Array, rc: guidance_config.ResidualConfig,
           valid: jax.Array | None) -> dict[str, jax.Array]:
   """The residual test's steps, each float32 [H, W] in {0, 1} (1 =
   transient so far), in order: "threshold" (the residual at or above the
@@ -115,7 +115,7 @@ def _inlier_probability(source: ResidualSource,
 
 
 def _gates(source: ResidualSource, view: jax.Array,
-           rc: config_lib.ResidualConfig, valid: jax.Array | None,
+           rc: guidance_config.ResidualConfig, valid: jax.Array | None,
            alpha: jax.Array | None) -> dict[str, jax.Array]:
   """The gates a transient pixel must pass, float [H, W] in {0, 1} each
   (1 = it may be transient), in the order they apply: "semantic" (p >
@@ -140,7 +140,7 @@ def _gates(source: ResidualSource, view: jax.Array,
 
 
 def _marks_enough(transient: jax.Array, valid: jax.Array | None,
-                  rc: config_lib.ResidualConfig) -> jax.Array:
+                  rc: guidance_config.ResidualConfig) -> jax.Array:
   """float32 [], 1 where `transient` marks at least
   rc.min_share of the photo's pixels, else 0 (the view is taken
   as clean)."""
@@ -149,10 +149,14 @@ def _marks_enough(transient: jax.Array, valid: jax.Array | None,
       jnp.float32)
 
 
-def residual_map(source: ResidualSource, stats: residual.ResidualState,
-                 view: jax.Array, render: jax.Array, photo: jax.Array,
-                 step: jax.Array, key: jax.Array,
-                 rc: config_lib.ResidualConfig,
+def residual_map(source: ResidualSource,
+                 stats: residual.ResidualState,
+                 view: jax.Array,
+                 render: jax.Array,
+                 photo: jax.Array,
+                 step: jax.Array,
+                 key: jax.Array,
+                 rc: guidance_config.ResidualConfig,
                  valid: jax.Array | None = None,
                  alpha: jax.Array | None = None) -> ResidualMap:
   """The transient map of training view `view` at `step`.
@@ -202,8 +206,8 @@ def residual_map(source: ResidualSource, stats: residual.ResidualState,
 
 
 def held_back(rmap: ResidualMap, source: ResidualSource, view: jax.Array,
-              step: jax.Array, rc: config_lib.ResidualConfig
-              ) -> ResidualMap:
+              step: jax.Array,
+              rc: guidance_config.ResidualConfig) -> ResidualMap:
   """`rmap` as the step that starts at `step` uses it: empty (no pixel
   transient, every pixel in the loss) before rc.start; with
   feature regions and rc.uniformity, before
@@ -222,11 +226,14 @@ def held_back(rmap: ResidualMap, source: ResidualSource, view: jax.Array,
                       loss_weight=1.0 - on * (1.0 - rmap.loss_weight))
 
 
-def residual_stages(source: ResidualSource, stats: residual.ResidualState,
-                    view: jax.Array, render: jax.Array, alpha: jax.Array,
-                    photo: jax.Array, rc: config_lib.ResidualConfig,
-                    valid: jax.Array | None = None
-                    ) -> dict[str, jax.Array]:
+def residual_stages(source: ResidualSource,
+                    stats: residual.ResidualState,
+                    view: jax.Array,
+                    render: jax.Array,
+                    alpha: jax.Array,
+                    photo: jax.Array,
+                    rc: guidance_config.ResidualConfig,
+                    valid: jax.Array | None = None) -> dict[str, jax.Array]:
   """Where the residual map's transient pixels go: {step: the map after
   it}, float32 [H, W] in {0, 1}, for the steps of STAGES the map has; the
   last of them in STAGES' order equals residual_map's `transient` (the
@@ -315,9 +322,13 @@ def oracle_patch_maps(masks, grid: int) -> jax.Array:
 
 
 
-def view_map(scorer, stats: residual.ResidualState | None, view: jax.Array,
-             render: jax.Array, alpha: jax.Array, photo: jax.Array,
-             rc: config_lib.ResidualConfig,
+def view_map(scorer,
+             stats: residual.ResidualState | None,
+             view: jax.Array,
+             render: jax.Array,
+             alpha: jax.Array,
+             photo: jax.Array,
+             rc: guidance_config.ResidualConfig,
              valid: jax.Array | None = None) -> jax.Array:
   """float32 [H, W], the map m a training step on `view` would use now:
   the residual map for a ResidualSource (from `render` and `alpha`, the

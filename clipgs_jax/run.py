@@ -28,6 +28,7 @@ from clipgs_jax import evaluation
 from clipgs_jax import fileio
 from clipgs_jax import gaussians
 from clipgs_jax import guidance
+from clipgs_jax import guidance_config
 from clipgs_jax import loop
 from clipgs_jax import plots
 from clipgs_jax import ply
@@ -155,7 +156,7 @@ def semantic_label(cfg: config_lib.Config) -> str:
                       if rc.features else "")
     if rc.features and rc.vote != 0.5:
       rule += f" masked at {rc.vote:g} failing"
-    default_gate = config_lib.ResidualConfig.uniformity
+    default_gate = guidance_config.ResidualConfig.uniformity
     if rc.features and rc.uniformity != default_gate:
       rule += (f", early only where even (std / mean < "
                f"{rc.uniformity:g})" if rc.uniformity

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import clip_testutil
-from clipgs_jax import config as config_lib
+from clipgs_jax import guidance_config
 from clipgs_jax.clip import dense
 from clipgs_jax.clip import model
 from clipgs_jax.clip import preprocess
@@ -27,7 +27,7 @@ transformers = pytest.importorskip(
 
 TOLERANCE = 1e-4  # max abs difference allowed in float32
 TINY = model.VARIANTS['tiny']
-SEM = config_lib.SemanticConfig(scorer='clip')  # the paper's 5 + 3 prompts
+SEM = guidance_config.SemanticConfig(scorer='clip')  # the paper's 5 + 3 prompts
 RENDER_HW = (40, 56)  # not square, so a transposed map would show
 
 

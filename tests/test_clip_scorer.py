@@ -13,6 +13,7 @@ from absl.testing import absltest
 
 from clipgs_jax import config
 from clipgs_jax import guidance
+from clipgs_jax import guidance_config
 from clipgs_jax import step
 from clipgs_jax import train
 from test_train import TEST_CFG, synthetic_scene  # pylint: disable=g-bad-import-order
@@ -27,8 +28,9 @@ class ClipScorerTest(absltest.TestCase):
     self.model = model
     self.clip_config = model.get_config("tiny")
     self.params = model.init_params(self.clip_config, jax.random.key(0))
-    self.sem = config.SemanticConfig(scorer="clip", clip_variant="tiny",
-                                     accumulate_start=0)
+    self.sem = guidance_config.SemanticConfig(scorer="clip",
+                                              clip_variant="tiny",
+                                              accumulate_start=0)
     self.scorer = guidance.make_scorer(
         config.Config(semantic=self.sem), None,
         clip_params=(self.clip_config, self.params))
@@ -89,13 +91,14 @@ class NoClipImportTest(absltest.TestCase):
     # A fresh interpreter: other tests in this process import CLIP.
     code = textwrap.dedent("""
         import sys
-        from clipgs_jax import config, guidance, train
+        from clipgs_jax import config, guidance, guidance_config, train
         from clipgs_jax.data import default_scene, scene
         s = scene.load_scene(default_scene.ensure_default_scene(),
                              downscale=4)
-        for sem in (config.SemanticConfig(),
-                    config.SemanticConfig(scorer="oracle"),
-                    config.SemanticConfig(scorer="oracle", evidence="pixel")):
+        for sem in (guidance_config.SemanticConfig(),
+                    guidance_config.SemanticConfig(scorer="oracle"),
+                    guidance_config.SemanticConfig(scorer="oracle",
+                                                   evidence="pixel")):
           guidance.make_scorer(config.Config(semantic=sem), s)
         clip = [m for m in sys.modules if m.startswith("clipgs_jax.clip")]
         assert not clip, clip

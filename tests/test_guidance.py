@@ -14,6 +14,7 @@ from absl.testing import parameterized
 from clipgs_jax import config
 from clipgs_jax import densify
 from clipgs_jax import guidance
+from clipgs_jax import guidance_config
 from clipgs_jax import sharding
 from clipgs_jax import state as state_lib
 from clipgs_jax import step
@@ -22,7 +23,7 @@ from test_densify import CFG as DENSIFY_CFG  # pylint: disable=g-bad-import-orde
 from test_densify import _drive, _make_state, _row_leaves, _tag_state  # pylint: disable=g-bad-import-order
 from test_train import CompileCounter, TEST_CFG, synthetic_scene  # pylint: disable=g-bad-import-order
 
-ORACLE = config.SemanticConfig(scorer="oracle")
+ORACLE = guidance_config.SemanticConfig(scorer="oracle")
 
 
 @flax.struct.dataclass
@@ -59,7 +60,7 @@ def _state_with_stats(acc, n, opacity, alive):
 class ScheduleTest(parameterized.TestCase):
 
   def test_scores_due(self):
-    sem = config.SemanticConfig(accumulate_start=5, score_every=3)
+    sem = guidance_config.SemanticConfig(accumulate_start=5, score_every=3)
     due = [bool(guidance.scores_due(jnp.int32(s), sem)) for s in range(12)]
     # Steps 5, 8, 11 score; nothing before accumulate_start.
     self.assertEqual([s for s, d in enumerate(due) if d], [5, 8, 11])
@@ -67,26 +68,29 @@ class ScheduleTest(parameterized.TestCase):
   def test_prune_due(self):
     cfg = config.Config(
         train=config.TrainConfig(steps=20_000),
-        semantic=config.SemanticConfig(scorer="oracle"))
+        semantic=guidance_config.SemanticConfig(scorer="oracle"))
     due = [s for s in range(20_001) if guidance.prune_due(s, cfg)]
     # From 5000 every 1000; never after the last step (as densify.due).
     self.assertEqual(due, list(range(5000, 20_000, 1000)))
-    off = dataclasses.replace(cfg, semantic=config.SemanticConfig())
+    off = dataclasses.replace(cfg, semantic=guidance_config.SemanticConfig())
     self.assertFalse(any(guidance.prune_due(s, off) for s in range(20_001)))
     # The opacity-loss-only ablation never prunes.
-    reg_only = dataclasses.replace(cfg, semantic=config.SemanticConfig(
-        scorer="oracle", prune=False))
+    reg_only = dataclasses.replace(cfg,
+                                   semantic=guidance_config.SemanticConfig(
+                                       scorer="oracle", prune=False))
     self.assertFalse(any(guidance.prune_due(s, reg_only)
                          for s in range(20_001)))
 
   def test_reset_quiet(self):
     # Resets after 3000 and 6000 finished steps (not at 9000 = steps).
-    cfg = config.Config(
-        train=config.TrainConfig(steps=9000),
-        densify=config.DensifyConfig(opacity_reset_every=3000),
-        semantic=config.SemanticConfig(scorer="oracle", reg_start=0,
-                                       prune_start=250, prune_every=250,
-                                       reset_quiet=500))
+    cfg = config.Config(train=config.TrainConfig(steps=9000),
+                        densify=config.DensifyConfig(opacity_reset_every=3000),
+                        semantic=guidance_config.SemanticConfig(
+                            scorer="oracle",
+                            reg_start=0,
+                            prune_start=250,
+                            prune_every=250,
+                            reset_quiet=500))
     due = [s for s in range(9001) if guidance.prune_due(s, cfg)]
     # The prune right before a reset stays; 3250, 3500 and 6250, 6500 go.
     expected = [s for s in range(250, 9000, 250)
@@ -107,19 +111,20 @@ class ScheduleTest(parameterized.TestCase):
                      list(range(250, 9000, 250)))
 
   def test_scaled_schedule(self):
-    sem = config.SemanticConfig().scaled_to(2000)
+    sem = guidance_config.SemanticConfig().scaled_to(2000)
     # 500/2000/5000/1000 of 20k steps -> one tenth.
     self.assertEqual((sem.accumulate_start, sem.reg_start, sem.prune_start,
                       sem.prune_every), (50, 200, 500, 100))
     # The warm-up's rate grows as the run shrinks: the same share at the
     # same fraction of the run (0.024 exactly at the table's 2,500 steps).
-    rc = config.ResidualConfig()
+    rc = guidance_config.ResidualConfig()
     self.assertAlmostEqual(rc.scaled_to(2000).warmup, 0.03)
     self.assertEqual(rc.scaled_to(2500).warmup, 0.024)
     # The residual map's start scales like the other starts; 0 stays 0.
-    self.assertEqual(config.ResidualConfig(start=5000).scaled_to(
-        2000).start, 500)
-    self.assertEqual(config.ResidualConfig(start=0).scaled_to(2000).start, 0)
+    self.assertEqual(
+        guidance_config.ResidualConfig(start=5000).scaled_to(2000).start, 500)
+    self.assertEqual(
+        guidance_config.ResidualConfig(start=0).scaled_to(2000).start, 0)
     self.assertEqual(rc.scaled_to(2500).uniform_until, 1250)
     # Config.scaled_to scales both sections.
     both = config.Config().scaled_to(2000)
@@ -150,16 +155,16 @@ class ScorerTest(absltest.TestCase):
 
   def test_pixel_oracle_maps_are_the_masks(self):
     scene = _masked_scene()
-    scorer = guidance.make_scorer(config.Config(
-        semantic=config.SemanticConfig(scorer="oracle", evidence="pixel")),
-                                  scene)
+    scorer = guidance.make_scorer(
+        config.Config(semantic=guidance_config.SemanticConfig(
+            scorer="oracle", evidence="pixel")), scene)
     self.assertIsInstance(scorer, guidance.PixelMapScorer)
     np.testing.assert_array_equal(scorer.score_map(jnp.int32(2)),
                                   scene.train.masks[2].astype(np.float32))
 
   def test_uniform_control_spreads_the_masks_mean(self):
     scene = _masked_scene()
-    uniform = config.Config(semantic=config.SemanticConfig(
+    uniform = config.Config(semantic=guidance_config.SemanticConfig(
         scorer="uniform", evidence="pixel"))
     scorer = guidance.make_scorer(uniform, scene)
     fraction = np.mean(scene.train.masks)
@@ -173,8 +178,10 @@ class ScorerTest(absltest.TestCase):
       guidance.make_scorer(uniform, no_masks)
 
   def test_score_and_accumulate(self):
-    sem = config.SemanticConfig(scorer="oracle", accumulate_start=3,
-                                score_every=2, beta=0.1)
+    sem = guidance_config.SemanticConfig(scorer="oracle",
+                                         accumulate_start=3,
+                                         score_every=2,
+                                         beta=0.1)
     masks = np.zeros((1, 2, 2), bool)
     masks[0, 0, 0] = True                       # f = 0.25
     scorer = guidance.OracleScorer(masks=jnp.asarray(masks), saturation=0.5)
@@ -345,23 +352,28 @@ class WiredStepTest(absltest.TestCase):
               state, lanes, scorer).as_text()
     vanilla = lowered(cfg)
     # Guidance off, whatever its other fields: the same program.
-    for sem, pixel in ((config.SemanticConfig(tau=0.3, beta=0.5),
-                        config.PixelConfig()),
-                       (config.SemanticConfig(evidence="pixel"),
-                        config.PixelConfig(tau_p=0.2, loss_masking=True))):
+    for sem, pixel in ((guidance_config.SemanticConfig(tau=0.3, beta=0.5),
+                        guidance_config.PixelConfig()),
+                       (guidance_config.SemanticConfig(evidence="pixel"),
+                        guidance_config.PixelConfig(tau_p=0.2,
+                                                    loss_masking=True))):
       self.assertEqual(lowered(dataclasses.replace(cfg, semantic=sem,
                                                    pixel=pixel)), vanilla)
     with self.assertRaisesRegex(ValueError, "takes no"):
       lowered(cfg, guidance.OracleScorer(
           masks=jnp.zeros((1, 8, 32, 32), bool), saturation=0.1))
 
-  def _pixel_step(self, map_value, pixel=config.PixelConfig(),
+  def _pixel_step(self,
+                  map_value,
+                  pixel=guidance_config.PixelConfig(),
                   **semantic_fields):
     """One scored step of the pixel-evidence train step with a constant
     map; returns (state before, state after, metrics)."""
     scene = synthetic_scene()
-    sem = config.SemanticConfig(scorer="oracle", evidence="pixel",
-                                accumulate_start=0, **semantic_fields)
+    sem = guidance_config.SemanticConfig(scorer="oracle",
+                                         evidence="pixel",
+                                         accumulate_start=0,
+                                         **semantic_fields)
     cfg = train.resolve(dataclasses.replace(TEST_CFG, semantic=sem,
                                             pixel=pixel), scene)
     state = train.initial_state(cfg, scene)
@@ -372,7 +384,7 @@ class WiredStepTest(absltest.TestCase):
 
   def test_pixel_step_accumulates_the_map(self):
     _, after, metrics = self._pixel_step(
-        0.25, config.PixelConfig(agreement=False))
+        0.25, guidance_config.PixelConfig(agreement=False))
     stats = after.semantic
     seen = np.asarray(stats.weight) > 0
     self.assertGreater(seen.sum(), 10)
@@ -385,7 +397,8 @@ class WiredStepTest(absltest.TestCase):
     self.assertAlmostEqual(float(metrics["map_mean"][0]), 0.25, places=6)
 
   def test_agreement_weights_the_map(self):
-    _, raw, _ = self._pixel_step(0.25, config.PixelConfig(agreement=False))
+    _, raw, _ = self._pixel_step(0.25,
+                                 guidance_config.PixelConfig(agreement=False))
     _, weighted, _ = self._pixel_step(0.25)
     # The second pass renders the same splats: the weight on static pixels,
     # sum w (1 - m), is unchanged; transient weight counts only where the
@@ -405,7 +418,7 @@ class WiredStepTest(absltest.TestCase):
     # A fully transient map with loss masking: no pixel is fitted, so the
     # colours do not move (the opacity loss touches opacities only).
     before, after, _ = self._pixel_step(
-        1.0, config.PixelConfig(loss_masking=True), reg_start=10_000)
+        1.0, guidance_config.PixelConfig(loss_masking=True), reg_start=10_000)
     np.testing.assert_array_equal(np.asarray(after.params.sh_dc),
                                   np.asarray(before.params.sh_dc))
     _, moved, _ = self._pixel_step(1.0, reg_start=10_000)
@@ -416,9 +429,13 @@ class WiredStepTest(absltest.TestCase):
     step.make_train_step.cache_clear()
     guidance.make_prune.cache_clear()
     scene = _masked_scene()
-    sem = config.SemanticConfig(
-        scorer="oracle", accumulate_start=10, reg_start=20, prune_start=40,
-        prune_every=20, tau=0.02, oracle_saturation=0.125)
+    sem = guidance_config.SemanticConfig(scorer="oracle",
+                                         accumulate_start=10,
+                                         reg_start=20,
+                                         prune_start=40,
+                                         prune_every=20,
+                                         tau=0.02,
+                                         oracle_saturation=0.125)
     cfg = train.resolve(dataclasses.replace(TEST_CFG, semantic=sem), scene)
     scorer = guidance.make_scorer(cfg, scene)
     workdir = self.create_tempdir().full_path
@@ -456,9 +473,13 @@ class WiredStepTest(absltest.TestCase):
     scene = _masked_scene()
     scene = dataclasses.replace(scene, train=dataclasses.replace(
         scene.train, masks=np.ones_like(scene.train.masks)))
-    sem = config.SemanticConfig(
-        scorer="oracle", accumulate_start=0, reg_start=0, prune_start=20,
-        prune_every=20, tau=0.0, **semantic_fields)
+    sem = guidance_config.SemanticConfig(scorer="oracle",
+                                         accumulate_start=0,
+                                         reg_start=0,
+                                         prune_start=20,
+                                         prune_every=20,
+                                         tau=0.0,
+                                         **semantic_fields)
     cfg = dataclasses.replace(TEST_CFG, semantic=sem,
                               train=dataclasses.replace(TEST_CFG.train,
                                                         steps=21))

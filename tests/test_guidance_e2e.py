@@ -20,6 +20,7 @@ from absl.testing import absltest
 
 from clipgs_jax import config
 from clipgs_jax import guidance
+from clipgs_jax import guidance_config
 from clipgs_jax import train
 from clipgs_jax.data import default_scene
 from clipgs_jax.data import scene as scene_lib
@@ -44,8 +45,9 @@ class PixelOracleEndToEndTest(absltest.TestCase):
     with open(os.path.join(path, "transients.json")) as f:
       on_transient = np.zeros(len(scene.points), bool)
       on_transient[json.load(f)["transient_points"]] = True
-    sem = config.SemanticConfig(scorer="oracle", evidence="pixel",
-                                n_min=0.0).scaled_to(STEPS)
+    sem = guidance_config.SemanticConfig(scorer="oracle",
+                                         evidence="pixel",
+                                         n_min=0.0).scaled_to(STEPS)
     cfg = config.Config(
         densify=config.DensifyConfig(start=STEPS),    # never densifies
         train=config.TrainConfig(steps=STEPS, eval_every=0,

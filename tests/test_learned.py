@@ -11,6 +11,7 @@ from absl.testing import absltest
 from clipgs_jax import config
 from clipgs_jax import config_file
 from clipgs_jax import guidance
+from clipgs_jax import guidance_config
 from clipgs_jax import learned
 from clipgs_jax import map_sources
 from clipgs_jax import residual
@@ -18,8 +19,8 @@ from clipgs_jax import train
 from test_checkpoint import _assert_states_equal  # pylint: disable=g-bad-import-order
 from test_train import synthetic_scene  # pylint: disable=g-bad-import-order
 
-LC = config.LearnedConfig()
-RC = config.ResidualConfig()
+LC = guidance_config.LearnedConfig()
+RC = guidance_config.ResidualConfig()
 
 
 def _stats(residuals) -> residual.ResidualState:
@@ -143,8 +144,8 @@ class ClassifierTest(absltest.TestCase):
     bad = dataclasses.replace(LC, inlier_quantile=0.95)
     self.assertLen(bad.problems(), 1)
     self.assertIn("inlier_quantile", bad.problems()[0])
-    cfg = config.Config(learned=bad, semantic=config.SemanticConfig(
-        scorer="learned"))
+    cfg = config.Config(
+        learned=bad, semantic=guidance_config.SemanticConfig(scorer="learned"))
     problems = cfg.problems()
     self.assertTrue(any(p.startswith("--config.learned.inlier_quantile")
                         for p in problems), problems)
@@ -157,10 +158,15 @@ def _learned_config(steps: int):
                             accumulate_start=0, reg_start=10,
                             prune_start=1000)
   return dataclasses.replace(
-      cfg, semantic=sem, pixel=config.PixelConfig(loss_masking=True),
+      cfg,
+      semantic=sem,
+      pixel=guidance_config.PixelConfig(loss_masking=True),
       residual=dataclasses.replace(cfg.residual, min_threshold=0.0),
-      train=dataclasses.replace(cfg.train, steps=steps, eval_every=0,
-                                log_every=10, checkpoint_every=0))
+      train=dataclasses.replace(cfg.train,
+                                steps=steps,
+                                eval_every=0,
+                                log_every=10,
+                                checkpoint_every=0))
 
 
 class LearnedRunTest(absltest.TestCase):

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from clipgs_jax import config
+from clipgs_jax import guidance_config
 from clipgs_jax import map_sources
 from clipgs_jax import residual
 
@@ -159,7 +159,7 @@ class SourceTest(absltest.TestCase):
 
   def _rc(self, **kw):
     kw = {"min_alpha": 0.0, **kw}   # no render alpha here
-    return config.ResidualConfig(warmup=0.0, **kw)
+    return guidance_config.ResidualConfig(warmup=0.0, **kw)
 
   def test_residual_map_and_gate(self):
     photo = jnp.zeros((16, 16, 3))

@@ -20,6 +20,7 @@ from clipgs_jax import densify
 from clipgs_jax import evaluation
 from clipgs_jax import gaussians
 from clipgs_jax import guidance
+from clipgs_jax import guidance_config
 from clipgs_jax import loop
 from clipgs_jax import sh
 from clipgs_jax import sharding
@@ -247,9 +248,11 @@ class EndToEndTest(absltest.TestCase):
     scene = synthetic_scene()
     residual = dataclasses.replace(
         TEST_CFG,
-        semantic=config.SemanticConfig(scorer="residual", evidence="pixel",
-                                       accumulate_start=0, reg_start=0),
-        pixel=config.PixelConfig(loss_masking=True))
+        semantic=guidance_config.SemanticConfig(scorer="residual",
+                                                evidence="pixel",
+                                                accumulate_start=0,
+                                                reg_start=0),
+        pixel=guidance_config.PixelConfig(loss_masking=True))
     # The learned map: its classifier's update is in the step too.
     learned = dataclasses.replace(
         residual, semantic=dataclasses.replace(residual.semantic,
@@ -281,12 +284,12 @@ class EndToEndTest(absltest.TestCase):
                  densify.make_reset_opacity, densify.make_count_requests):
       self.assertIs(make(host), make(TEST_CFG), make.__name__)
     # The prune rule is not the step's: the step is shared, the prune not.
-    oracle = config.SemanticConfig(scorer="oracle", evidence="pixel")
+    oracle = guidance_config.SemanticConfig(scorer="oracle", evidence="pixel")
     strict = dataclasses.replace(TEST_CFG, semantic=oracle)
-    lenient = dataclasses.replace(
-        TEST_CFG,
-        semantic=dataclasses.replace(oracle, max_prune_fraction=1.0),
-        pixel=config.PixelConfig(tau_p=0.9))
+    lenient = dataclasses.replace(TEST_CFG,
+                                  semantic=dataclasses.replace(
+                                      oracle, max_prune_fraction=1.0),
+                                  pixel=guidance_config.PixelConfig(tau_p=0.9))
     self.assertIs(make_step(strict), make_step(lenient))
     self.assertIsNot(guidance.make_prune(strict), guidance.make_prune(lenient))
     # What the step computes with is not shared.

@@ -12,10 +12,11 @@ from absl.testing import parameterized
 
 from clipgs_jax import config
 from clipgs_jax import config_file
+from clipgs_jax import guidance_config
 from clipgs_jax.data import default_scene
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-ORACLE = config.SemanticConfig(scorer="oracle")
+ORACLE = guidance_config.SemanticConfig(scorer="oracle")
 
 
 def _cd(name: str):
@@ -60,9 +61,9 @@ class ConfigFilesTest(absltest.TestCase):
                      (2500, 8, 8192, 125))
     self.assertEqual(cfg.render.tile_size, 8)
     self.assertEqual(cfg.semantic,
-                     config.SemanticConfig().scaled_to(2500))
+                     guidance_config.SemanticConfig().scaled_to(2500))
     self.assertEqual(cfg.residual,
-                     config.ResidualConfig().scaled_to(2500))
+                     guidance_config.ResidualConfig().scaled_to(2500))
 
   def test_demo_checkpoints_once_at_any_steps(self):
     cd = _cd("demo")
@@ -144,7 +145,8 @@ class BadValuesTest(parameterized.TestCase):
 class SemanticCheckTest(parameterized.TestCase):
   """config_file.check names the semantic field that cannot run."""
 
-  def _check(self, sem: config.SemanticConfig, **sections) -> config.Config:
+  def _check(self, sem: guidance_config.SemanticConfig,
+             **sections) -> config.Config:
     return config_file.check({"semantic": dataclasses.asdict(sem),
                               **sections})
 
@@ -179,15 +181,17 @@ class SemanticCheckTest(parameterized.TestCase):
     # Silently training vanilla 3DGS instead (exit 0) would hide the
     # mistake.
     with self.assertRaisesRegex(app.UsageError, "no distractor prompts"):
-      self._check(config.SemanticConfig(scorer="clip",
-                                        distractor_prompts=()))
+      self._check(
+          guidance_config.SemanticConfig(scorer="clip", distractor_prompts=()))
     with self.assertRaisesRegex(app.UsageError, "needs static prompts"):
-      self._check(config.SemanticConfig(
-          scorer="clip", evidence="pixel", static_prompts=()))
+      self._check(
+          guidance_config.SemanticConfig(scorer="clip",
+                                         evidence="pixel",
+                                         static_prompts=()))
 
   def test_uniform_needs_pixel_evidence(self):
     with self.assertRaisesRegex(app.UsageError, "needs evidence='pixel'"):
-      self._check(config.SemanticConfig(scorer="uniform"))
+      self._check(guidance_config.SemanticConfig(scorer="uniform"))
 
   def test_loss_masking_alone_is_valid(self):
     # Robust-3DGS-style masking without the opacity loss or pruning is a

@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 
 from clipgs_jax import config as config_lib
+from clipgs_jax import guidance_config
 from clipgs_jax import semantic
 from clipgs_jax.clip import dense
 from clipgs_jax.clip import model
@@ -47,7 +48,7 @@ class ClipScorer:
             "s_hat_s": s_hat_s}
 
 
-def make(sem: config_lib.SemanticConfig,
+def make(sem: guidance_config.SemanticConfig,
          clip_params: tuple[model.ClipConfig, Any]) -> ClipScorer:
   """The image-level scorer of the tower, its prompts embedded once.
 
@@ -130,8 +131,9 @@ class DenseClipScorer:
     return dense.upsample(self.patch_probabilities(image), h, w)
 
 
-def make_dense(sem: config_lib.SemanticConfig,
-               clip_params: tuple[model.ClipConfig, Any], *,
+def make_dense(sem: guidance_config.SemanticConfig,
+               clip_params: tuple[model.ClipConfig, Any],
+               *,
                input_size: int = DENSE_INPUT_SIZE,
                readout: str = dense.DEFAULT_READOUT) -> DenseClipScorer:
   """The dense scorer of the tower, its prompts embedded once.

@@ -11,6 +11,7 @@ import numpy as np
 from clipgs_jax import camera
 from clipgs_jax import config as config_lib
 from clipgs_jax import fileio
+from clipgs_jax.data import canvas
 from clipgs_jax.data import colmap
 from clipgs_jax.data import images
 from clipgs_jax.data import splits
@@ -38,14 +39,6 @@ PACK_FORMAT = "clipgs_jax scene pack 2"
 # files are k / 255 = 257 k / 65535), so a pack stores uint16 exactly.
 _CODES = 65535
 _CAMERA_FIELDS = ("rotation", "translation", "fx", "fy", "cx", "cy")
-# Photos of different sizes share one canvas: the largest width by the
-# largest height, each photo in its top-left corner (`Views.sizes`). A
-# canvas costs its area in every render and in device memory for every
-# photo, so a split whose canvas exceeds this many times the mean photo's
-# area is refused (portrait and landscape photos of one camera are 1.33x
-# at 4:3, 1.78x at 16:9; a thumbnail among full-size photos is far more;
-# BUILD_NOTES.md, "Multi-device training").
-MAX_CANVAS_WASTE = 4.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -78,63 +71,6 @@ class Views:
 
   def __len__(self) -> int:
     return len(self.names)
-
-
-def photo_size(views, i: int) -> tuple[int, int]:
-  """(width, height) of view i's photo: its canvas corner or the canvas."""
-  sizes = getattr(views, "sizes", None)
-  if sizes is None:
-    return int(views.cameras.width), int(views.cameras.height)
-  return int(sizes[i][0]), int(sizes[i][1])
-
-
-def crop(views, i: int, array):
-  """`array` ([H, W, ...] on the canvas of `views`) cut to view i's photo."""
-  width, height = photo_size(views, i)
-  return array[:height, :width]
-
-
-def on_canvas(arrays, sizes: np.ndarray | None, fill=0) -> np.ndarray:
-  """[V, H, W, ...]: per-view arrays of (possibly) different sizes in the
-  top-left corner of the canvas `sizes` spans, `fill` elsewhere.
-
-  Args:
-    arrays: V arrays [h_i, w_i, ...] of one dtype.
-    sizes: int [V, 2] of their (w_i, h_i), or None when they share one
-      size (then they are stacked as they are).
-  """
-  if sizes is None:
-    return np.stack(arrays)
-  width, height = (int(x) for x in np.max(sizes, axis=0))
-  first = np.asarray(arrays[0])
-  out = np.full((len(arrays), height, width) + first.shape[2:], fill,
-                first.dtype)
-  for i, a in enumerate(arrays):
-    out[i, :a.shape[0], :a.shape[1]] = a
-  return out
-
-
-def canvas_sizes(sizes, what: str) -> np.ndarray | None:
-  """int32 [V, 2] of the photos' (width, height), or None when they share
-  one size.
-
-  Raises:
-    ValueError: the canvas holds more than MAX_CANVAS_WASTE times the
-      mean photo's pixels.
-  """
-  sizes = np.asarray(sizes, np.int32).reshape(-1, 2)
-  if len(sizes) == 0 or np.all(sizes == sizes[0]):
-    return None
-  width, height = np.max(sizes, axis=0)
-  waste = width * height / np.mean(np.prod(sizes.astype(np.float64), -1))
-  if waste > MAX_CANVAS_WASTE:
-    small = sizes[np.argmin(np.prod(sizes, -1))]
-    raise ValueError(
-        f"{what}: photos from {small[0]}x{small[1]} to {width}x{height} "
-        f"share a {width}x{height} canvas of {waste:.1f}x the mean photo's "
-        f"pixels (at most {MAX_CANVAS_WASTE:g}x); resize or crop the "
-        "photos to similar sizes, or train them as separate scenes.")
-  return sizes
 
 
 @dataclasses.dataclass(frozen=True)
@@ -226,27 +162,21 @@ def _load_views(model: colmap.Model, idx, scene_path: str, downscale: int,
           f"{src} gives a {w}x{h} image at downscale {downscale}; views need "
           f"at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE} pixels (one SSIM "
           "window); use a smaller --config.data.downscale or larger images.")
-    # Pixel centres at +0.5 in both grids make continuous image coordinates
-    # scale uniformly, so fx, cx (fy, cy) scale by new_W / W (new_H / H).
-    sx, sy = w / size[0], h / size[1]
-    fx, fy, cx, cy = model.intrinsics[i]
-    cams.append(camera.Camera.create(
-        model.rotations[i], model.translations[i], fx * sx, fy * sy,
-        cx * sx, cy * sy, w, h))
+    cams.append(_camera(model, i, w, h))
     imgs.append(image)
   names = tuple(model.names[idx[k]] for k in ids)
-  sizes = canvas_sizes([(c.width, c.height) for c in cams],
-                       f"the views of {model.sparse_dir}")
+  sizes = canvas.canvas_sizes([(c.width, c.height) for c in cams],
+                              f"the views of {model.sparse_dir}")
   masks = _load_masks(scene_path, names, downscale,
                       [im.shape[:2] for im in imgs],
                       sizes) if with_masks else None
-  return Views(cameras=_stack(cams), images=on_canvas(imgs, sizes), names=names,
-               masks=masks, sizes=sizes,
+  return Views(cameras=_stack(cams), images=canvas.on_canvas(imgs, sizes),
+               names=names, masks=masks, sizes=sizes,
                ids=None if keep is None else np.asarray(ids))
 
 
 def _load_masks(scene_path, names, downscale, shapes, sizes):
-  """bool [V, H, W] on the views' canvas (`sizes`, see on_canvas), or None
+  """bool [V, H, W] on the views' canvas (`sizes`, canvas.on_canvas), or None
   if `masks/` has none of these views' masks.
 
   A mask is binarised at its full resolution (grey >= MASK_THRESHOLD), and a
@@ -276,7 +206,7 @@ def _load_masks(scene_path, names, downscale, shapes, sizes):
                        f"pixels, which gives no {width}x{height} image at "
                        f"downscale {downscale}; make it its image's size.")
     masks.append(images.resize_area(full, width, height) > 0)
-  return on_canvas(masks, sizes, fill=False)
+  return canvas.on_canvas(masks, sizes, fill=False)
 
 
 def _extent(cameras: camera.Camera) -> float:
@@ -377,16 +307,18 @@ def _load_folder(model: colmap.Model, path: str, downscale: int,
 def _poses(model: colmap.Model, idx, downscale: int) -> camera.Camera:
   """The stacked cameras of the views `idx` without reading their photos
   (Scene.train_cameras): intrinsics scaled to images.downscaled_size."""
-  cams = []
-  for i in idx:
-    size = tuple(int(s) for s in model.sizes[i])
-    w, h = images.downscaled_size(*size, downscale)
-    fx, fy, cx, cy = model.intrinsics[i]
-    sx, sy = w / size[0], h / size[1]
-    cams.append(camera.Camera.create(
-        model.rotations[i], model.translations[i], fx * sx, fy * sy,
-        cx * sx, cy * sy, w, h))
-  return _stack(cams)
+  return _stack([_camera(model, i, *images.downscaled_size(
+      *(int(s) for s in model.sizes[i]), downscale)) for i in idx])
+
+
+def _camera(model: colmap.Model, i: int, w: int, h: int) -> camera.Camera:
+  """View i of `model` with its photo at w x h. Pixel centres at +0.5 in
+  both grids make continuous image coordinates scale uniformly, so fx, cx
+  (fy, cy) scale by w / W (h / H)."""
+  sx, sy = w / model.sizes[i][0], h / model.sizes[i][1]
+  fx, fy, cx, cy = model.intrinsics[i]
+  return camera.Camera.create(model.rotations[i], model.translations[i],
+                              fx * sx, fy * sy, cx * sx, cy * sy, w, h)
 
 
 def _stack(cams: list[camera.Camera]) -> camera.Camera:

@@ -9,6 +9,7 @@ import jax.numpy as jnp
 
 from clipgs_jax.lab import timing
 from clipgs_jax import config as config_lib
+from clipgs_jax import guidance_config
 from clipgs_jax.clip import model
 from clipgs_jax.clip import preprocess
 from clipgs_jax.clip import scorer
@@ -55,7 +56,7 @@ def scorers(variant: str, render_hw: tuple[int, int], *, runs: int,
   config, params, common = setup(variant, runs)
   render = _render(render_hw)
   view = jnp.int32(0)
-  sem = config_lib.SemanticConfig(scorer='clip')  # the paper's prompts
+  sem = guidance_config.SemanticConfig(scorer='clip')  # the paper's prompts
   image_level = scorer.make(sem, clip_params=(config, params))
   score = jax.jit(lambda s, im: s.score(im, view))
   yield dict(what='scorer_image_level', render_hw=list(render_hw),

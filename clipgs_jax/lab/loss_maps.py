@@ -32,6 +32,7 @@ from clipgs_jax import plots
 from clipgs_jax import residual
 from clipgs_jax import run as run_lib
 from clipgs_jax import sh
+from clipgs_jax.data import canvas
 from clipgs_jax.data import scene as scene_lib
 
 LOSS_MAPS_JSON = "loss_maps.json"
@@ -148,9 +149,9 @@ def contrast(state, cfg, views, clean_run: str) -> dict:
       evaluation.renders(clean_state.params, clean_state.alive, views,
                          clean_cfg))):
     totals += contrast_counts(
-        scene_lib.crop(views, i, views.images[i]), np.asarray(mine),
+        canvas.crop(views, i, views.images[i]), np.asarray(mine),
         np.asarray(behind),
-        scene_lib.crop(views, i, np.asarray(views.masks[i], bool)), threshold)
+        canvas.crop(views, i, np.asarray(views.masks[i], bool)), threshold)
   gt, reachable, baked = (int(x) for x in totals)
   return {"threshold": threshold,
           "reachable": reachable / gt if gt else None,
@@ -196,7 +197,7 @@ def loss_map_report(workdir: str, count: int = 3,
     if by_stage:
       m = map_sources.in_stage_order(m)
       labels = (None if scorer.labels is None else
-                scene_lib.crop(views, i, np.asarray(scorer.labels[i])))
+                canvas.crop(views, i, np.asarray(scorer.labels[i])))
       for key, c in stage_counts(m, truth, labels,
                                  scorer.num_regions).items():
         steps[key] = np.add(steps.get(key, 0), c)
@@ -234,7 +235,7 @@ def loss_map_report(workdir: str, count: int = 3,
     for k, (kind, name) in enumerate(picked):
       i = index[name]
       m = maps[name]
-      photo = scene_lib.crop(views, i, views.images[i])
+      photo = canvas.crop(views, i, views.images[i])
       truth = (np.zeros(m.shape, bool) if truths[name] is None
                else truths[name])
       s = scores[name]

@@ -15,8 +15,8 @@ from clipgs_jax import ply
 from clipgs_jax import run as run_lib
 from clipgs_jax import semantic
 from clipgs_jax import train
+from clipgs_jax.data import canvas
 from clipgs_jax.data import images as images_lib
-from clipgs_jax.data import scene as scene_lib
 
 SOURCES = ("auto", "checkpoint", "ply")   # where the Gaussians come from
 TRAIN_RENDERS = os.path.join("renders", "train")   # colour, training views
@@ -157,7 +157,7 @@ def render_masks(workdir: str, tau: float | None = None) -> dict:
   if scene.train.masks is None:
     logging.info("scene %s has no masks/: no IoU computed.", scene.path)
     return out
-  masks = [scene_lib.crop(scene.train, i, m)
+  masks = [canvas.crop(scene.train, i, m)
            for i, m in enumerate(scene.train.masks)]
   block = evaluation.iou_summary(scene.train.names, alphas, masks)
   block |= {"tau": tau, "num_gaussians_above_tau": num_chosen}

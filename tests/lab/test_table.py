@@ -12,6 +12,7 @@ from absl.testing import absltest
 from clipgs_jax import config
 from clipgs_jax import config_file
 from clipgs_jax import fileio
+from clipgs_jax import guidance_config
 from clipgs_jax import run as run_lib
 from clipgs_jax.lab import sweep
 from clipgs_jax.lab import table
@@ -150,9 +151,10 @@ class FormatTest(absltest.TestCase):
     sem = bench.semantic      # scaled to the steps
     self.assertEqual(cfgs["vanilla"].semantic.scorer, "off")
     self.assertEqual(cfgs["clean"].data.train_split, "clean")
-    self.assertEqual(cfgs["oracle"].semantic,
-                     config.SemanticConfig(
-                         scorer="oracle").scaled_to(bench.train.steps))
+    self.assertEqual(
+        cfgs["oracle"].semantic,
+        guidance_config.SemanticConfig(scorer="oracle").scaled_to(
+            bench.train.steps))
     self.assertEqual(cfgs["oracle_pixel_masked"].semantic.evidence, "pixel")
     self.assertTrue(cfgs["oracle_pixel_masked"].pixel.loss_masking)
     self.assertEqual(cfgs["clip_pixel"].semantic.scorer, "clip")

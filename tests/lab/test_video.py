@@ -17,6 +17,7 @@ from clipgs_jax import cli
 from clipgs_jax import config
 from clipgs_jax import evaluation
 from clipgs_jax import fileio
+from clipgs_jax import guidance_config
 from clipgs_jax import run as run_lib
 from clipgs_jax import train
 from clipgs_jax.data import scene as scene_lib
@@ -76,11 +77,11 @@ def _fake_run(root, name="run", scene_dir=None) -> str:
   if not os.path.isdir(scene_dir):
     test_transforms.write_transforms(scene_dir, 5)
   scene = scene_lib.load_scene(scene_dir)
-  cfg = config.Config(
-      gaussians=config.GaussiansConfig(sh_degree=0, min_capacity=64,
-                                       random_init_points=40),
-      semantic=config.SemanticConfig(scorer="oracle"),
-      train=config.TrainConfig(background=scene.background))
+  cfg = config.Config(gaussians=config.GaussiansConfig(sh_degree=0,
+                                                       min_capacity=64,
+                                                       random_init_points=40),
+                      semantic=guidance_config.SemanticConfig(scorer="oracle"),
+                      train=config.TrainConfig(background=scene.background))
   cfg = train.resolve(cfg, scene)
   workdir = os.path.join(root, name)
   fileio.write_json(os.path.join(workdir, run_lib.RUN_JSON),
