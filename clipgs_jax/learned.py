@@ -111,11 +111,11 @@ def predict(params: dict[str, jax.Array], feats: jax.Array) -> jax.Array:
   return jax.nn.sigmoid(hidden @ params["w2"] + params["b2"])[..., 0]
 
 
-def confident(res: jax.Array,
-              stats: residual.ResidualState,
+def confident(res: jax.Array, stats: residual.ResidualState,
               rc: guidance_config.ResidualConfig,
               lc: guidance_config.LearnedConfig,
-              valid: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
+              valid: jax.Array | None = None
+              ) -> tuple[jax.Array, jax.Array]:
   """(lower, upper), float32 [H, W] in {0, 1}: the residual test's inlier
   masks (rc.rule) at the histogram's lc.inlier_quantile and at the larger
   of its lc.outlier_quantile and the running threshold. lower = 1 is a
@@ -123,8 +123,9 @@ def confident(res: jax.Array,
   seen (empty histogram, threshold 1) neither marks a pixel."""
   cumulative = jnp.cumsum(stats.histogram)
   low = residual.histogram_quantile(cumulative, lc.inlier_quantile)
-  high = jnp.maximum(residual.histogram_quantile(cumulative, lc.outlier_quantile),
-                     stats.threshold)
+  high = jnp.maximum(
+      residual.histogram_quantile(cumulative, lc.outlier_quantile),
+      stats.threshold)
   lower = residual.inliers(res, low, rc.rule, valid)
   upper = residual.inliers(res, high, rc.rule, valid)
   if valid is not None:
@@ -132,11 +133,8 @@ def confident(res: jax.Array,
   return lower, upper
 
 
-def loss(params: dict[str, jax.Array],
-         feats: jax.Array,
-         lower: jax.Array,
-         upper: jax.Array,
-         lc: guidance_config.LearnedConfig,
+def loss(params: dict[str, jax.Array], feats: jax.Array, lower: jax.Array,
+         upper: jax.Array, lc: guidance_config.LearnedConfig,
          valid: jax.Array | None = None) -> jax.Array:
   """float [], SLS-mlp's loss: mean(b relu(p - upper) + relu(lower - p))
   over the photo's pixels (0 for a pixel between the quantiles), plus
@@ -160,10 +158,8 @@ def loss(params: dict[str, jax.Array],
   return data + lc.weight_reg * reg
 
 
-def gradient(params: dict[str, jax.Array],
-             feats: jax.Array,
-             res: jax.Array,
-             stats: residual.ResidualState,
+def gradient(params: dict[str, jax.Array], feats: jax.Array,
+             res: jax.Array, stats: residual.ResidualState,
              rc: guidance_config.ResidualConfig,
              lc: guidance_config.LearnedConfig,
              valid: jax.Array | None = None) -> dict[str, jax.Array]:

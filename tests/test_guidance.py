@@ -429,13 +429,9 @@ class WiredStepTest(absltest.TestCase):
     step.make_train_step.cache_clear()
     guidance.make_prune.cache_clear()
     scene = _masked_scene()
-    sem = guidance_config.SemanticConfig(scorer="oracle",
-                                         accumulate_start=10,
-                                         reg_start=20,
-                                         prune_start=40,
-                                         prune_every=20,
-                                         tau=0.02,
-                                         oracle_saturation=0.125)
+    sem = guidance_config.SemanticConfig(
+        scorer="oracle", accumulate_start=10, reg_start=20, prune_start=40,
+        prune_every=20, tau=0.02, oracle_saturation=0.125)
     cfg = train.resolve(dataclasses.replace(TEST_CFG, semantic=sem), scene)
     scorer = guidance.make_scorer(cfg, scene)
     workdir = self.create_tempdir().full_path
@@ -473,13 +469,9 @@ class WiredStepTest(absltest.TestCase):
     scene = _masked_scene()
     scene = dataclasses.replace(scene, train=dataclasses.replace(
         scene.train, masks=np.ones_like(scene.train.masks)))
-    sem = guidance_config.SemanticConfig(scorer="oracle",
-                                         accumulate_start=0,
-                                         reg_start=0,
-                                         prune_start=20,
-                                         prune_every=20,
-                                         tau=0.0,
-                                         **semantic_fields)
+    sem = guidance_config.SemanticConfig(
+        scorer="oracle", accumulate_start=0, reg_start=0, prune_start=20,
+        prune_every=20, tau=0.0, **semantic_fields)
     cfg = dataclasses.replace(TEST_CFG, semantic=sem,
                               train=dataclasses.replace(TEST_CFG.train,
                                                         steps=21))
