@@ -8,6 +8,7 @@
   python experiments/report.py --report=evidence --runs=DIR
   python experiments/report.py --report=loss_maps --runs=DIR [--views=3]
       [--clean_run=CLEAN_DIR]
+  python experiments/report.py --report=map_limits --runs=DIR
   python experiments/report.py --report=curve --runs=DIR1,DIR2
       --curve_png=curve.png [--labels=a,b] [--x_axis=seconds|step]
   python experiments/report.py --report=seeds --runs=ROOT_S0,ROOT_S1,...
@@ -27,29 +28,26 @@ evidence: on a persistent benchmark, the ground-truth pixel evidence s_j
   of the Gaussians on billboards (ghosts, by geometry) against the rest,
   raw and agreement-weighted: DIR/evidence.json and DIR/evidence.png
   (clipgs_jax/lab/ghost_evidence.py).
-loss_maps: with pixel evidence, the map m the loss uses for every
-  training view with the final model, scored against the ground-truth
-  masks, and a picture of the worst views (lowest IoU; clean views masked
-  most): DIR/loss_maps.json and DIR/loss_maps.png (clipgs_jax/lab/
-  loss_maps.py). For the residual map, its recall after each of its steps
-  (threshold, 3x3 rule, region vote, gates) and the most the feature
-  regions' vote could keep; with --clean_run (the clean twin's run), the
-  share of transient pixels that differ from what lies behind them by at
-  least the threshold, and the share that do but that the model
-  reproduces (baked in), both of all transient pixels.
+loss_maps: with pixel evidence, the map m of every training view with
+  the final model against the ground truth, and the worst views:
+  DIR/loss_maps.json and .png (clipgs_jax/lab/loss_maps.py); a residual
+  map's recall after each of its steps; with --clean_run (the clean twin's
+  run), how many transient pixels differ from what lies behind them.
+map_limits: on a benchmark run, what a map could reach with the truth:
+  the learned classifier fitted to the true masks, multi-view photo
+  consistency on the run's geometry, the bare residual test
+  (clipgs_jax/lab/map_limits.py): DIR/map_limits.json.
 curve: test MSE (log) against training time of each run's curve.json (a
   run folder or the curve.json itself).
-seeds: the table roots of several seeds (each a configs/table.py
-  --workdir, one --config.train.seed) as one table: every cell's PSNR per
-  seed, its mean, its difference from vanilla (clean for a control row)
-  paired by seed, and per benchmark the test views that move most between
-  seeds; the difference again over the other test views, and with
-  --set_apart (test image names) over those views apart from the rest
-  (clipgs_jax/lab/seeds.py).
+seeds: the table roots of several seeds as one table: every cell's PSNR
+  per seed, its mean and its difference from vanilla (clean for a control
+  row) paired by seed; the test views that move most between seeds, and
+  --set_apart views apart (clipgs_jax/lab/seeds.py).
 figures: per benchmark, a render grid and error curves of the table's
   runs in TABLE_ROOT/<benchmark name>/<row>/ (clipgs_jax/lab/figures.py).
 """
 
+import json
 import os
 
 from absl import flags
@@ -59,6 +57,7 @@ from clipgs_jax import evaluation
 from clipgs_jax.lab import ghost_evidence
 from clipgs_jax.lab import figures
 from clipgs_jax.lab import loss_maps
+from clipgs_jax.lab import map_limits
 from clipgs_jax import plots
 from clipgs_jax.lab import report
 from clipgs_jax.lab import seeds
@@ -66,8 +65,8 @@ from clipgs_jax import run as run_lib
 
 _REPORT = flags.DEFINE_enum(
     "report", None,
-    ["metrics", "renders", "masks", "evidence", "loss_maps", "curve",
-     "seeds", "figures"],
+    ["metrics", "renders", "masks", "evidence", "loss_maps", "map_limits",
+     "curve", "seeds", "figures"],
     "What to make of the runs.")
 _RUNS = flags.DEFINE_list("runs", None, "Run folders written by "
                           "experiments/train.py (figures: the table's root; "
@@ -201,6 +200,8 @@ def main(argv):
     _evidence()
   elif what == "loss_maps":
     _loss_maps()
+  elif what == "map_limits":
+    print(json.dumps(map_limits.map_limits_report(_one_run()), indent=1))
   elif what == "seeds":
     for root in _RUNS.value:
       cli.require_folder("runs", root)

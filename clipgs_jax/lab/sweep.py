@@ -189,25 +189,36 @@ def _short_label(cfg: config_lib.Config) -> str:
   return name + (" + features" if cfg.residual.features else "")
 
 
+def demo_view(psnr: dict, oracle: dict) -> int:
+  """The test view a demo's picture shows: where the transients cost
+  vanilla (the first row) most, i.e. where an oracle row (`oracle[row]`)
+  gains most over it; without one, where the second row changes PSNR most
+  against vanilla; with one row, its worst view. `psnr`: row -> per-view
+  test PSNR, in row order."""
+  rows = list(psnr)
+  if len(rows) == 1:
+    return int(np.argmin(psnr[rows[0]]))
+  reference = next((k for k in rows[1:] if oracle[k]), rows[1])
+  gain = psnr[reference] - psnr[rows[0]]
+  return int(np.argmax(gain if oracle[reference] else np.abs(gain)))
+
+
 def _demo_outputs(workdir: str, cfgs: dict, metrics: dict) -> dict:
   """comparison.png and comparison.json of the demo's runs.
 
   The rows are vanilla first, then the row the demo shows (the best one
   that needs nothing but the photos, or dense CLIP with weights), then any
-  reference rows (ORACLE-PIXEL); the picture is the test view where the
-  shown row changes PSNR most against vanilla (with one row, its worst
-  test view), one panel per row and the ground truth, each titled with
-  its label and PSNR there.
+  reference rows (ORACLE-PIXEL); the picture is one test view, one panel
+  per row and the ground truth, each titled with its label and PSNR there:
+  `demo_view`'s.
   """
   rows = list(cfgs)
   _, _, scene = run_lib.load_run(os.path.join(workdir, rows[0]))
   names = scene.test.names
   psnr = {k: np.array([m["test"]["per_image"][n]["psnr"] for n in names])
           for k, m in metrics.items()}
-  if len(rows) > 1:
-    view = int(np.argmax(np.abs(psnr[rows[1]] - psnr[rows[0]])))
-  else:
-    view = int(np.argmin(psnr[rows[0]]))
+  view = demo_view(psnr, {k: c.semantic.scorer == "oracle"
+                          for k, c in cfgs.items()})
   stem = os.path.splitext(os.path.basename(names[view]))[0]
   renders = [images_lib.read_image(os.path.join(
       workdir, k, run_lib.TEST_RENDERS, stem + ".png")) for k in rows]

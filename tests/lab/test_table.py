@@ -8,6 +8,7 @@ from unittest import mock
 
 from absl import app
 from absl.testing import absltest
+import numpy as np
 
 from clipgs_jax import config
 from clipgs_jax import config_file
@@ -343,6 +344,20 @@ class EndToEndTest(absltest.TestCase):
       one = sweep.run(cd, root)
     train.assert_not_called()
     self.assertEqual(sorted(one), ["residual", "view"])
+
+  def test_demo_view_is_where_the_oracle_gains_most(self):
+    psnr = {"vanilla": np.array([20.0, 18.0, 25.0]),
+            "residual": np.array([26.0, 19.0, 25.0]),
+            "oracle_pixel_masked": np.array([21.0, 24.0, 25.0])}
+    oracle = {"vanilla": False, "residual": False,
+              "oracle_pixel_masked": True}
+    # The transients cost vanilla most in view 1, not where the shown row
+    # changes most (view 0).
+    self.assertEqual(sweep.demo_view(psnr, oracle), 1)
+    del psnr["oracle_pixel_masked"]
+    self.assertEqual(sweep.demo_view(psnr, oracle), 0)
+    self.assertEqual(sweep.demo_view({"vanilla": psnr["vanilla"]}, oracle),
+                     1)
 
 
 if __name__ == "__main__":

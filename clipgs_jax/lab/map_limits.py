@@ -1,0 +1,197 @@
+"""How far a transient map could reach on a finished run, with the truth.
+
+Three tests of each training pixel, scored against the ground-truth masks
+(precision, recall, IoU over all training views), to tell a map's failure
+from its inputs' limit:
+  * "features": the learned map's classifier (learned.predict on
+    learned.pixel_features, the run's LearnedConfig) trained offline on
+    the ground-truth masks of every training view, balanced as the online
+    one is: the most its features can tell, with perfect labels. Also the
+    precision where its ranking reaches RECALL_TARGET of the transients.
+  * "multiview": photo consistency on the run's own geometry. Each pixel's
+    rendered surface point (depth, alpha > 0.5) is projected into every
+    other training view; a view sees it where that view's rendered depth
+    there is within DEPTH_TOLERANCE (relative) of the point's; the pixel
+    is transient when at least MIN_SEEN views see it and more than half of
+    them hold a colour that differs from its own by over the colour
+    tolerance (mean |difference| over channels; a few tolerances). Alone,
+    and intersected with the residual over its median.
+  * "residual": the final model's residual over its RESIDUAL_QUANTILE
+    quantile (the residual map's default quantile, without its gates).
+"""
+
+import functools
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from clipgs_jax import camera as camera_lib
+from clipgs_jax import evaluation
+from clipgs_jax import fileio
+from clipgs_jax import learned
+from clipgs_jax import rasterize
+from clipgs_jax import run as run_lib
+
+MAP_LIMITS_JSON = "map_limits.json"
+FIT_STEPS = 3000            # one view per Adam step, as the online fit
+RECALL_TARGET = 0.75        # issue 76's recall target
+DEPTH_TOLERANCE = 0.05      # |z_j - depth_j| < this x z_j: view j sees it
+COLOUR_TOLERANCES = (0.05, 0.1, 0.2)
+MIN_SEEN = 3
+RESIDUAL_QUANTILE = 0.7
+
+
+def scores(pred: np.ndarray, truth: np.ndarray) -> dict:
+  """precision, recall and IoU of bool maps against bool truth."""
+  return evaluation.confusion_scores(evaluation.confusion(pred, truth))
+
+
+def precision_at_recall(score: np.ndarray, truth: np.ndarray,
+                        recall: float) -> float:
+  """The precision of the fewest top-scored pixels that hold `recall` of
+  the true ones (ties broken by order)."""
+  ranked = truth.reshape(-1)[np.argsort(-score.reshape(-1), kind="stable")]
+  hits = np.cumsum(ranked)
+  k = int(np.searchsorted(hits, recall * hits[-1]))
+  return float(hits[k] / (k + 1))
+
+
+def fit_classifier(feats: np.ndarray, truth: np.ndarray, lc,
+                   steps: int = FIT_STEPS, seed: int = 0) -> np.ndarray:
+  """float32 [V, H, W], the transient probability 1 - p of a classifier
+  (learned.init, learned.predict) fitted to the true masks: per step one
+  random view, SLS-mlp's hinge with both classes weighed alike and its
+  weight penalty, as learned.loss with every pixel labelled."""
+  f, t = jnp.asarray(feats), jnp.asarray(truth, jnp.float32)
+  optimizer = optax.adam(lc.lr)
+
+  def loss(params, i):
+    p = learned.predict(params, f[i])
+    out = t[i]
+    b = jnp.sum(1.0 - out) / jnp.maximum(jnp.sum(out), 1.0)
+    data = jnp.mean(b * out * jax.nn.relu(p) + (1.0 - out) * jax.nn.relu(
+        1.0 - p))
+    reg = jnp.max(jnp.abs(params["w1"])) * jnp.max(jnp.abs(params["w2"]))
+    return data + lc.weight_reg * reg
+
+  @jax.jit
+  def step(params, opt_state, i):
+    updates, opt_state = optimizer.update(jax.grad(loss)(params, i),
+                                          opt_state, params)
+    return optax.apply_updates(params, updates), opt_state
+
+  params = learned.init(lc, jax.random.PRNGKey(seed)).params
+  opt_state = optimizer.init(params)
+  for i in np.random.default_rng(seed).integers(0, len(feats), steps):
+    params, opt_state = step(params, opt_state, i)
+  predict = jax.jit(jax.vmap(lambda x: learned.predict(params, x)))
+  return 1.0 - np.asarray(predict(f))
+
+
+def _bilinear(image, u, v):
+  """image [H, W, ...] at pixel coordinates (u, v) (centres at +0.5),
+  clamped to the border."""
+  h, w = image.shape[:2]
+  x, y = u - 0.5, v - 0.5
+  x0 = jnp.clip(jnp.floor(x).astype(jnp.int32), 0, w - 2)
+  y0 = jnp.clip(jnp.floor(y).astype(jnp.int32), 0, h - 2)
+  ax, ay = jnp.clip(x - x0, 0, 1), jnp.clip(y - y0, 0, 1)
+  if image.ndim == 3:
+    ax, ay = ax[..., None], ay[..., None]
+  return (image[y0, x0] * (1 - ax) * (1 - ay) + image[y0, x0 + 1] * ax
+          * (1 - ay) + image[y0 + 1, x0] * (1 - ax) * ay
+          + image[y0 + 1, x0 + 1] * ax * ay)
+
+
+@functools.partial(jax.jit, static_argnames=("min_seen",))
+def disagreement(photos, depths, alphas, cameras, i, colour_tolerance,
+                 min_seen: int = MIN_SEEN):
+  """bool [H, W]: view i's pixels that more than half of the (at least
+  `min_seen`) other views seeing their surface point disagree with.
+
+  Args:
+    photos: float [V, H, W, 3]; depths, alphas: float [V, H, W], the
+      renders' expected depth and alpha; cameras: camera.Camera stacked
+      [V] (one canvas size); i: int [], the view; colour_tolerance: float.
+  """
+  _, h, w = depths.shape
+  rot, trans = cameras.rotation, cameras.translation
+  fx, fy, cx, cy = cameras.fx, cameras.fy, cameras.cx, cameras.cy
+  u, v = jnp.meshgrid(jnp.arange(w) + 0.5, jnp.arange(h) + 0.5)
+  z = depths[i]
+  local = jnp.stack([(u - cx[i]) / fx[i] * z, (v - cy[i]) / fy[i] * z, z],
+                    -1)
+  world = jnp.einsum("ji,hwj->hwi", rot[i], local - trans[i])
+  surface = alphas[i] > 0.5
+
+  def other(j):
+    p = jnp.einsum("ij,hwj->hwi", rot[j], world) + trans[j]
+    zj = p[..., 2]
+    uj = fx[j] * p[..., 0] / zj + cx[j]
+    vj = fy[j] * p[..., 1] / zj + cy[j]
+    inside = ((zj > 0) & (uj > 0.5) & (uj < w - 0.5) & (vj > 0.5)
+              & (vj < h - 0.5))
+    seen = (inside & surface & (j != i)
+            & (jnp.abs(zj - _bilinear(depths[j], uj, vj))
+               < DEPTH_TOLERANCE * zj)
+            & (_bilinear(alphas[j], uj, vj) > 0.5))
+    differ = jnp.mean(jnp.abs(_bilinear(photos[j], uj, vj) - photos[i]), -1)
+    return seen, seen & (differ > colour_tolerance)
+
+  seen, differs = jax.lax.map(other, jnp.arange(depths.shape[0]))
+  seen, differs = seen.sum(0), differs.sum(0)
+  return (seen >= min_seen) & (2 * differs > seen)
+
+
+def _renders(state, cfg, views):
+  """float32 [V, H, W, 3] colours, [V, H, W] depths and alphas."""
+  bg = jnp.asarray(cfg.train.background, jnp.float32)
+  render = jax.jit(lambda cam: rasterize.render(state.params, state.alive,
+                                                cam, bg, cfg.render))
+  outs = [render(camera_lib.camera_at(views.cameras, i))
+          for i in range(len(views))]
+  return tuple(np.stack([np.asarray(getattr(o, k)) for o in outs])
+               for k in ("image", "depth", "alpha"))
+
+
+def map_limits_report(workdir: str) -> dict:
+  """Writes MAP_LIMITS_JSON into a finished run folder and returns it:
+  {"features": {"scores", "precision_at_recall"}, "multiview":
+  {tolerance: {"alone", "with_residual"}}, "residual": scores}.
+
+  Raises:
+    ValueError: the scene has no ground-truth masks, or photos of
+      different sizes (the projections assume one canvas).
+  """
+  _, cfg, scene, state = run_lib.load_state(workdir)
+  views = scene.train
+  if views.masks is None or views.sizes is not None:
+    raise ValueError(
+        f"{scene.path}: map limits need ground-truth masks (masks/) and "
+        "photos of one size; pass a run of a benchmark scene.")
+  truth = views.masks
+  colours, depths, alphas = _renders(state, cfg, views)
+  res = np.abs(colours - views.images).mean(-1)
+  over_median = res > np.quantile(res, 0.5)
+  out = {"residual": scores(res > np.quantile(res, RESIDUAL_QUANTILE),
+                            truth), "multiview": {}}
+  cams = jax.tree.map(jnp.asarray, views.cameras)
+  photos, depths, alphas = (jnp.asarray(x) for x in
+                            (views.images, depths, alphas))
+  for tol in COLOUR_TOLERANCES:
+    mv = np.stack([np.asarray(disagreement(photos, depths, alphas, cams, i,
+                                           tol)) for i in range(len(views))])
+    out["multiview"][str(tol)] = {"alone": scores(mv, truth),
+                                  "with_residual": scores(mv & over_median,
+                                                          truth)}
+  prob = fit_classifier(np.stack(learned.pixel_features(views.images,
+                                                        cfg.learned)),
+                        truth, cfg.learned)
+  out["features"] = {"scores": scores(prob > evaluation.MAP_THRESHOLD, truth),
+                     "precision_at_recall": precision_at_recall(
+                         prob, truth, RECALL_TARGET)}
+  fileio.write_json(os.path.join(workdir, MAP_LIMITS_JSON), out)
+  return out
