@@ -12,9 +12,9 @@ against the Gaussians that draw it; and, as a labelled reference, the same
 machinery on the ground-truth masks (OUT/oracle_pixel_masked/,
 ORACLE-PIXEL). With --clip_weights the residual row keeps the residual test
 only where dense CLIP calls the pixel a distractor. Writes OUT/comparison.png
-(the test view where the residual row differs most from vanilla: every row
-and the ground truth, with their PSNR) and OUT/comparison.json (every row's
-test metrics and run time).
+(the test view where ORACLE-PIXEL gains most over vanilla, i.e. where the
+transients cost most: every row and the ground truth, with their PSNR) and
+OUT/comparison.json (every row's test metrics and run time).
 """
 
 from ml_collections import config_dict
