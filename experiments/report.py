@@ -47,7 +47,6 @@ figures: per benchmark, a render grid and error curves of the table's
   runs in TABLE_ROOT/<benchmark name>/<row>/ (clipgs_jax/lab/figures.py).
 """
 
-import json
 import os
 
 from absl import flags
@@ -201,7 +200,8 @@ def main(argv):
   elif what == "loss_maps":
     _loss_maps()
   elif what == "map_limits":
-    print(json.dumps(map_limits.map_limits_report(_one_run()), indent=1))
+    print("\n".join(map_limits.summary(map_limits.map_limits_report(
+        _one_run()))))
   elif what == "seeds":
     for root in _RUNS.value:
       cli.require_folder("runs", root)

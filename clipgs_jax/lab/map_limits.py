@@ -195,3 +195,22 @@ def map_limits_report(workdir: str) -> dict:
                          prob, truth, RECALL_TARGET)}
   fileio.write_json(os.path.join(workdir, MAP_LIMITS_JSON), out)
   return out
+
+
+def summary(out: dict) -> list[str]:
+  """`map_limits_report`'s dict as lines of P / R / IoU."""
+  def line(s):
+    return " / ".join("-" if s[k] is None else f"{s[k]:.2f}"
+                      for k in ("precision", "recall", "iou"))
+  f = out["features"]
+  lines = ["P / R / IoU against the ground truth, all training views:",
+           f"  residual over its {RESIDUAL_QUANTILE} quantile: "
+           f"{line(out['residual'])}",
+           f"  learned map's classifier fitted to the truth: "
+           f"{line(f['scores'])}; P {f['precision_at_recall']:.2f} at R "
+           f"{RECALL_TARGET}"]
+  for tol, m in out["multiview"].items():
+    lines.append(f"  multi-view consistency, colour tolerance {tol}: "
+                 f"{line(m['alone'])}; with the residual over its median "
+                 f"{line(m['with_residual'])}")
+  return lines

@@ -85,3 +85,12 @@ def test_disagreement_needs_min_seen_views():
       jnp.asarray(photos), jnp.asarray(depths), jnp.asarray(alphas), cams,
       1, 0.1, min_seen=4))
   assert not out.any()   # three other views at most
+
+
+def test_summary_names_every_test():
+  s = {"precision": 0.5, "recall": None, "iou": 0.25}
+  out = {"residual": s, "features": {"scores": s, "precision_at_recall": 0.8},
+         "multiview": {"0.1": {"alone": s, "with_residual": s}}}
+  text = "\n".join(map_limits.summary(out))
+  assert "0.50 / - / 0.25" in text
+  assert "tolerance 0.1" in text and "P 0.80 at R 0.75" in text
