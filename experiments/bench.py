@@ -1,5 +1,5 @@
 """Timings, one JSON line per result: rasterizer, step, clip, semantic,
-features or views.
+features, views or peers.
 
   python experiments/bench.py --bench=rasterizer [--num_gaussians=10000
       --sizes=256x256]
@@ -14,25 +14,13 @@ features or views.
   python experiments/bench.py --bench=views --bench_scene=DIR
       [--bench_downscale=4 --batch_devices=1x1,2x1,4x1,2x2,4x2 --host_devices=2
        --device_lanes=auto|scan|vmap]
+  python experiments/bench.py --bench=peers --bench_scene=DIR --peers=PEERS
+      --out=OUT [--bench_downscale=8 --train_steps=7000 --train_seed=0]
 
-rasterizer: custom VJP against plain autodiff of the forward, per (N, image
-  size, variant), on Gaussians scattered in the view frustum.
-step: one training step on a real view, stage by stage, at each Gaussian
-  count (0: the scene's SfM points; more: a resampled stand-in of a
-  densified model; --checkpoint: a trained state).
-clip: the CLIP encoders, preprocessing, tokenizer and text cache, and
-  (--scorers) the view scorers, on random weights.
-semantic: step-time overhead of guidance over the vanilla step.
-features: the feature regions of the first --repeats training photos
-  (per photo, compiled once) and their per-step vote (features.benchmark),
-  and the learned map's per-pixel features of the same photos
-  (learned.benchmark).
-views: views per second of B views per step on D devices (BxD), every
-  variant in one process, timed round-robin, each step waited for and 10
-  steps back to back (as training runs them); on a CPU the devices are
-  --host_devices forced host devices sharing its cores.
-The lab's functions (clipgs_jax/lab/timing.py, clipgs_jax/lab/
-clip_timing.py) document every field.
+What each --bench times, and every field, is documented by the lab
+function it calls: clipgs_jax/lab/timing.py (rasterizer, step, semantic),
+clip_timing.py (clip), features.py and learned.py (features),
+batch_timing.py (views: B views a step on D devices), peers.py (peers).
 """
 
 import json
@@ -47,6 +35,7 @@ from clipgs_jax import features
 from clipgs_jax import learned
 from clipgs_jax.lab import batch_timing
 from clipgs_jax.lab import clip_timing
+from clipgs_jax.lab import peers
 from clipgs_jax.clip import dense
 from clipgs_jax.clip import model
 from clipgs_jax.clip import scorer
@@ -65,6 +54,7 @@ DEFAULTS = {
     "semantic": dict(tile_budget=8192, bench_downscale=1),
     "features": dict(repeats=21, bench_downscale=8),
     "views": dict(tile_budget=8192, bench_downscale=4, num_gaussians=["0"]),
+    "peers": dict(bench_downscale=8),
 }
 
 _BENCH = flags.DEFINE_enum("bench", None, list(DEFAULTS), "What to time.")
@@ -103,14 +93,11 @@ _CLIP_VARIANT = flags.DEFINE_enum("clip_variant", model.DEFAULT_VARIANT,
                                   "CLIP tower (random weights).")
 _BATCH_SIZES = flags.DEFINE_list("batch_sizes", ["1", "8"],
                                  "clip: image batch sizes.")
-_WARMUP = flags.DEFINE_integer("warmup", 2, "clip: untimed runs after "
-                               "compilation.")
+_WARMUP = flags.DEFINE_integer("warmup", 2, "clip: untimed runs first.")
 _RENDER_SIZE = flags.DEFINE_list("render_size", ["378", "504"], "clip: "
                                  "height,width of the render to score.")
-_ENCODERS = flags.DEFINE_bool("encoders", True, "clip: time the encoders, "
-                              "preprocess and the text cache.")
-_SCORERS = flags.DEFINE_bool("scorers", False, "clip: time the image-level "
-                             "and dense view scorers.")
+_ENCODERS = flags.DEFINE_bool("encoders", True, "clip: time the encoders.")
+_SCORERS = flags.DEFINE_bool("scorers", False, "clip: time the scorers.")
 _DENSE_SIZES = flags.DEFINE_list(
     "dense_input_sizes", [str(scorer.DENSE_INPUT_SIZE)],
     "clip: dense scorer input sides (multiples of the patch size).")
@@ -132,6 +119,11 @@ _DEVICE_LANES = flags.DEFINE_enum(
     "device_lanes", "auto", ["auto", "scan", "vmap"],
     "views: how a device renders its B / D lanes: auto (vmap on an "
     "accelerator, scan on a CPU: step.lanes_vmapped), or either.")
+_PEERS = flags.DEFINE_string("peers", None, "peers: the folder holding "
+                             "the peers' sources (../shared/bench_peers).")
+_OUT = flags.DEFINE_string("out", None, "peers: output folder.")
+_TRAIN_STEPS = flags.DEFINE_integer("train_steps", 7000, "peers: steps.")
+_SEED = flags.DEFINE_integer("train_seed", 0, "peers: every run's seed.")
 flags.mark_flag_as_required("bench")
 
 
@@ -231,6 +223,14 @@ def _results():
         render=config_lib.RenderConfig(
             tile_budget=budget, chunk_size=_CHUNK.value, lanes=_LANES.value,
             tile_size=_TILE_SIZE.value))
+  elif what == "peers":
+    _require_scene("peers", "trains on a real scene")
+    cli.require(_PEERS.value and _OUT.value, "peers", _PEERS.value,
+                "and --out are needed: the peers' folder and an output one")
+    out = peers.bench(_PEERS.value, list(peers.PEERS), _SCENE.value,
+                      _value("bench_downscale", _DOWNSCALE),
+                      _TRAIN_STEPS.value, _SEED.value, _OUT.value)
+    yield from ({"system": k, **c[-1]} for k, c in out["runs"].items())
   else:
     yield from timing.semantic_overhead(
         _SCENE.value or default_scene.ensure_default_scene(),
