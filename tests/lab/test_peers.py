@@ -1,8 +1,6 @@
 """Tests for clipgs_jax/lab/peers.py without the peers' sources: the
 COLMAP folder the peers train on, and the checks before any run."""
 
-import os
-
 import numpy as np
 import pytest
 
