@@ -17,9 +17,9 @@ from clipgs_jax import compiled
 from clipgs_jax import config as config_lib
 from clipgs_jax import gaussians
 from clipgs_jax import optim
-from clipgs_jax import project as project_lib
 from clipgs_jax import state as state_lib
 from clipgs_jax import tree_util
+from clipgs_jax.render import project as project_lib
 
 # Radius of a splat = this many standard deviations along its major axis
 # (the 3DGS convention for the screen-size statistic).

@@ -12,9 +12,9 @@ from clipgs_jax import compiled
 from clipgs_jax import config as config_lib
 from clipgs_jax import gaussians
 from clipgs_jax import metrics as metrics_lib
-from clipgs_jax import rasterize
 from clipgs_jax import sharding
 from clipgs_jax.data import canvas
+from clipgs_jax.render import rasterize
 
 
 # A pixel is predicted transient where the flagged Gaussians cover more than
@@ -205,9 +205,9 @@ def _view_map_fn(cfg: config_lib.Config, stages: bool = False):
   """Jitted (params, alive, stats, scorer, view, cam, photo, degree, valid)
   -> the map the loss would use for that training view now, or with
   `stages` the residual map after each of its steps
-  (map_sources.residual_stages); `valid` as map_sources.residual_map's."""
-  from clipgs_jax import map_sources  # pylint: disable=g-import-not-at-top
-  map_fn = map_sources.residual_stages if stages else map_sources.view_map
+  (sources.residual_stages); `valid` as sources.residual_map's."""
+  from clipgs_jax.maps import sources  # pylint: disable=g-import-not-at-top
+  map_fn = sources.residual_stages if stages else sources.view_map
 
   def fn(params, alive, stats, scorer, view, cam, photo, degree, valid):
     bg = jnp.asarray(cfg.train.background, jnp.float32)
@@ -222,7 +222,7 @@ def view_map(params: gaussians.GaussianParams, alive, stats, scorer, views,
              stages: bool = False):
   """float32 [H, W] in [0, 1], the transient map m a training step on view
   `index` of `views` would use now (mask_quality's arguments); with
-  `stages` (a map_sources.ResidualSource only), {step name: the residual
+  `stages` (a sources.ResidualSource only), {step name: the residual
   map after that step}, the last being m."""
   # The one camera, not every view's, moves to the device per call.
   cam = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32),
@@ -252,7 +252,7 @@ def mask_quality(params: gaussians.GaussianParams, alive, stats, scorer,
     params, alive: the current model.
     stats: TrainState.maps (the residual statistics, or None).
     scorer: the run's pixel scorer (guidance.PixelMapScorer or
-      map_sources.ResidualSource).
+      sources.ResidualSource).
     views: the training Views, with masks.
     cfg: the run's config.
     degree: int32 [], the SH degree the steps use now.

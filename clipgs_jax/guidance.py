@@ -40,10 +40,10 @@ from clipgs_jax import compiled
 from clipgs_jax import config as config_lib
 from clipgs_jax import densify
 from clipgs_jax import guidance_config
-from clipgs_jax import map_sources
 from clipgs_jax import semantic
 from clipgs_jax import state as state_lib
 from clipgs_jax.data import canvas
+from clipgs_jax.maps import sources
 
 # Keys of the per-step scores in the train step's metrics: image evidence
 # logs the view's scores, pixel evidence the mean of the view's map. Beside
@@ -140,7 +140,7 @@ def make_scorer(cfg: config_lib.Config, scene, *,
     source = _residual_source(None, cfg.residual, scene)
     if sem.scorer == "residual":
       return source
-    return source.replace(pixel_features=map_sources.learned_features(
+    return source.replace(pixel_features=sources.learned_features(
         scene.train.images, cfg.learned, getattr(scene.train, "sizes",
                                                  None)))
   if sem.scorer in ("oracle", "uniform", "oracle_patch"):
@@ -156,9 +156,9 @@ def make_scorer(cfg: config_lib.Config, scene, *,
       return uniform_control(masks, sizes)
     if sem.scorer == "oracle_patch":
       grid = sem.dense_input_size // ORACLE_PATCH_SIZE
-      maps = (map_sources.oracle_patch_maps(masks, grid) if sizes is None
+      maps = (sources.oracle_patch_maps(masks, grid) if sizes is None
               else jnp.asarray(per_photo(
-                  lambda m: map_sources.oracle_patch_maps(m[None], grid)[0],
+                  lambda m: sources.oracle_patch_maps(m[None], grid)[0],
                   masks, sizes)))
       return _pixel_source(maps, cfg.residual, scene)
     if sem.localized:
@@ -190,15 +190,15 @@ def _pixel_source(maps: jax.Array, rc: guidance_config.ResidualConfig, scene):
 
 
 def _residual_source(maps, rc: guidance_config.ResidualConfig,
-                     scene) -> map_sources.ResidualSource:
+                     scene) -> sources.ResidualSource:
   """The residual map's scorer, with the photos' feature regions when
   rc.features names a backbone."""
   if not rc.features:
-    return map_sources.ResidualSource(semantic=maps)
-  labels, num = map_sources.feature_regions(
+    return sources.ResidualSource(semantic=maps)
+  labels, num = sources.feature_regions(
       scene.train.images, rc.features, getattr(scene.train, "sizes", None))
-  return map_sources.ResidualSource(semantic=maps, labels=labels,
-                                    num_regions=num)
+  return sources.ResidualSource(semantic=maps, labels=labels,
+                                num_regions=num)
 
 
 def per_photo(fn, arrays, sizes, fill=0) -> np.ndarray:

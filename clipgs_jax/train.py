@@ -13,15 +13,15 @@ from clipgs_jax import config as config_lib
 from clipgs_jax import gaussians
 from clipgs_jax import guidance
 from clipgs_jax import initialize
-from clipgs_jax import learned
 from clipgs_jax import loop
 from clipgs_jax import optim
-from clipgs_jax import residual as residual_lib
 from clipgs_jax import sharding
 from clipgs_jax import state as state_lib
 from clipgs_jax import step as step_lib
 from clipgs_jax import summary
 from clipgs_jax.data import scene as scene_lib
+from clipgs_jax.maps import learned
+from clipgs_jax.maps import residual as residual_lib
 
 _log = logging.getLogger(__name__)
 
@@ -57,7 +57,16 @@ def init_state(cfg: config_lib.Config, params: gaussians.GaussianParams,
 
 
 def resolve(cfg: config_lib.Config, scene) -> config_lib.Config:
-  """Fills the scene-dependent config fields (scene_extent) from `scene`."""
+  """Fills the scene-dependent config fields from `scene`: scene_extent,
+  and train.background where the photos have an alpha channel (the colour
+  they were composited onto, data.background: a model of a photo on white
+  must not draw the white)."""
+  background = getattr(scene, "background", None)
+  if background is not None and tuple(cfg.train.background) != background:
+    _log.info("photos with alpha on %s: train.background %s -> %s",
+              cfg.data.background, cfg.train.background, background)
+    cfg = dataclasses.replace(cfg, train=dataclasses.replace(
+        cfg.train, background=background))
   if cfg.scene_extent > 0:
     return cfg
   extent = float(scene.extent)

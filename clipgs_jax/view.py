@@ -12,14 +12,14 @@ from clipgs_jax import camera as camera_lib
 from clipgs_jax import config as config_lib
 from clipgs_jax import gaussians
 from clipgs_jax import guidance
-from clipgs_jax import learned
 from clipgs_jax import losses
-from clipgs_jax import map_sources
-from clipgs_jax import project
-from clipgs_jax import rasterize
-from clipgs_jax import residual as residual_lib
 from clipgs_jax import semantic as semantic_lib
 from clipgs_jax import state as state_lib
+from clipgs_jax.maps import learned
+from clipgs_jax.maps import residual as residual_lib
+from clipgs_jax.maps import sources
+from clipgs_jax.render import project
+from clipgs_jax.render import rasterize
 
 # fold_in tags that give each use of the run's key its own stream (tag 3,
 # densification, is train.fit's).
@@ -86,7 +86,7 @@ class ViewPass(NamedTuple):
     proj: the project.Projected splats the render drew.
     terms: {"l1", "ssim"} of the photometric loss, and "semantic_loss"
       with a scorer.
-    rmap: the view's map_sources.ResidualMap, or None.
+    rmap: the view's sources.ResidualMap, or None.
     grads: GaussianParams, d loss / d params.
     grad2d: float [C, 2], d loss / d screen position, in pixels.
     probe_grad: float [C], each Gaussian's sum_i w_ij m_i of the residual
@@ -100,7 +100,7 @@ class ViewPass(NamedTuple):
   out: rasterize.RenderOutput
   proj: project.Projected
   terms: dict[str, jax.Array]
-  rmap: map_sources.ResidualMap | None
+  rmap: sources.ResidualMap | None
   grads: gaussians.GaussianParams
   grad2d: jax.Array
   probe_grad: jax.Array | None
@@ -160,11 +160,11 @@ def render_and_grad(state: state_lib.TrainState, scorer,
                               valid_size=size)
     weight, rmap = loss_weight, None
     if dynamic:
-      rmap = map_sources.residual_map(scorer, state.maps, view, out.image,
-                                      target, step, sample_key, cfg.residual,
-                                      valid=valid,
-                                      alpha=jax.lax.stop_gradient(out.alpha))
-      rmap = map_sources.held_back(rmap, scorer, view, step, cfg.residual)
+      rmap = sources.residual_map(scorer, state.maps, view, out.image,
+                                  target, step, sample_key, cfg.residual,
+                                  valid=valid,
+                                  alpha=jax.lax.stop_gradient(out.alpha))
+      rmap = sources.held_back(rmap, scorer, view, step, cfg.residual)
       if cfg.pixel.loss_masking:
         weight = rmap.loss_weight
     loss, terms = losses.photometric(out.image, target,

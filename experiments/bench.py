@@ -19,7 +19,7 @@ features, views or peers.
 
 What each --bench times, and every field, is documented by the lab
 function it calls: clipgs_jax/lab/timing.py (rasterizer, step, semantic),
-clip_timing.py (clip), features.py and learned.py (features),
+clip_timing.py (clip), features.py (features),
 batch_timing.py (views: B views a step on D devices), peers.py (peers).
 """
 
@@ -28,19 +28,18 @@ import json
 from absl import flags
 import jax
 
-from clipgs_jax.lab import timing
 from clipgs_jax import cli
 from clipgs_jax import config as config_lib
-from clipgs_jax import features
-from clipgs_jax import learned
-from clipgs_jax.lab import batch_timing
-from clipgs_jax.lab import clip_timing
-from clipgs_jax.lab import peers
 from clipgs_jax.clip import dense
 from clipgs_jax.clip import model
 from clipgs_jax.clip import scorer
 from clipgs_jax.data import default_scene
 from clipgs_jax.data import scene as scene_lib
+from clipgs_jax.lab import batch_timing
+from clipgs_jax.lab import clip_timing
+from clipgs_jax.lab import peers
+from clipgs_jax.lab import timing
+from clipgs_jax.maps import features
 
 # Per benchmark defaults of the shared flags (None on the command line).
 DEFAULTS = {
@@ -208,7 +207,7 @@ def _results():
     downscale = _value("bench_downscale", _DOWNSCALE)
     photos = scene_lib.load_scene(
         _SCENE.value, downscale=downscale).train.images[:repeats]
-    for benchmark in (features.benchmark, learned.benchmark):
+    for benchmark in (features.benchmark, features.pixel_benchmark):
       yield dict(benchmark(photos), scene=_SCENE.value, downscale=downscale)
   elif what == "views":
     _require_scene("views", "times a real scene")

@@ -1,6 +1,6 @@
 """Slow dense reference renderer: every pixel against every sorted Gaussian.
 
-Written plainly and independently of clipgs_jax.project/rasterize (only the
+Written plainly and independently of clipgs_jax.render.project/rasterize (only the
 SH basis is shared, and it has its own closed-form tests), so that the tiled
 rasterizer and its custom VJP can be checked against autodiff of this.
 """

@@ -5,9 +5,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from clipgs_jax import blend
-from clipgs_jax import project
-from clipgs_jax import rasterize
+from clipgs_jax.render import blend
+from clipgs_jax.render import project
+from clipgs_jax.render import rasterize
 
 # 512 x 256 pixels in 16 x 16 tiles: 512 tiles.
 WIDTH, HEIGHT, TILE = 512, 256, 16

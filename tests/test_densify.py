@@ -11,10 +11,10 @@ from clipgs_jax import config
 from clipgs_jax import densify
 from clipgs_jax import gaussians
 from clipgs_jax import optim
-from clipgs_jax import project
 from clipgs_jax import sh
 from clipgs_jax import state as state_lib
 from clipgs_jax import train
+from clipgs_jax.render import project
 
 CFG = config.Config(
     gaussians=config.GaussiansConfig(sh_degree=1),

@@ -6,8 +6,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from clipgs_jax import features
 from clipgs_jax.data import images
+from clipgs_jax.maps import features
 from tests import shared_data
 
 # One small image size and clustering for every synthetic test, so the

@@ -12,10 +12,11 @@ from clipgs_jax import config
 from clipgs_jax import config_file
 from clipgs_jax import guidance
 from clipgs_jax import guidance_config
-from clipgs_jax import learned
-from clipgs_jax import map_sources
-from clipgs_jax import residual
 from clipgs_jax import train
+from clipgs_jax.maps import features
+from clipgs_jax.maps import learned
+from clipgs_jax.maps import residual
+from clipgs_jax.maps import sources
 from test_checkpoint import _assert_states_equal  # pylint: disable=g-bad-import-order
 from test_train import synthetic_scene  # pylint: disable=g-bad-import-order
 
@@ -36,9 +37,9 @@ class ClassifierTest(absltest.TestCase):
 
   def test_shapes_and_the_positional_encoding(self):
     clf = learned.init(LC, jax.random.key(0))
-    dims = learned.feature_dims(LC) + 4 * LC.frequencies
+    dims = features.pixel_dims(LC.dims) + 4 * LC.frequencies
     self.assertEqual(clf.params["w1"].shape, (dims, LC.hidden))
-    feats = jnp.zeros((5, 7, learned.feature_dims(LC)))
+    feats = jnp.zeros((5, 7, features.pixel_dims(LC.dims)))
     p = learned.predict(clf.params, feats)
     self.assertEqual(p.shape, (5, 7))
     self.assertTrue(np.all((np.asarray(p) > 0) & (np.asarray(p) < 1)))
@@ -86,7 +87,7 @@ class ClassifierTest(absltest.TestCase):
     # p follow the labels, and an unlabelled pixel with an outlier's
     # features follows the outliers.
     rng = np.random.default_rng(1)
-    h, w, f = 8, 8, learned.feature_dims(LC)
+    h, w, f = 8, 8, features.pixel_dims(LC.dims)
     transient = np.zeros((h, w), bool)
     transient[2:6, 2:6] = True
     feats = rng.normal(0, 0.05, (h, w, f)).astype(np.float32)
@@ -108,8 +109,8 @@ class ClassifierTest(absltest.TestCase):
   def test_the_map_is_the_verdict_and_the_loss_weight_is_p(self):
     # A classifier that says p = q everywhere: the map is 1 where q < 0.5,
     # and the loss weighs a pixel by q where the map is 0, by 0 where 1.
-    feats = jnp.zeros((1, 4, 5, learned.feature_dims(LC)))
-    source = map_sources.ResidualSource(pixel_features=feats)
+    feats = jnp.zeros((1, 4, 5, features.pixel_dims(LC.dims)))
+    source = sources.ResidualSource(pixel_features=feats)
     photo = jnp.zeros((4, 5, 3))
     rc = dataclasses.replace(RC, warmup=0.0, min_alpha=0.0, min_share=0.0)
     for q, transient, weight in ((0.8, 0.0, 0.8), (0.3, 1.0, 0.0)):
@@ -117,9 +118,9 @@ class ClassifierTest(absltest.TestCase):
       params = jax.tree.map(jnp.zeros_like, clf.params)
       params["b2"] = jnp.full((1,), np.log(q / (1 - q)), jnp.float32)
       stats = residual.ResidualState.initial(clf.replace(params=params))
-      m = map_sources.residual_map(source, stats, jnp.int32(0), photo,
-                                   photo, jnp.int32(0), jax.random.key(0),
-                                   rc)
+      m = sources.residual_map(source, stats, jnp.int32(0), photo,
+                               photo, jnp.int32(0), jax.random.key(0),
+                               rc)
       np.testing.assert_allclose(m.transient, transient)
       np.testing.assert_allclose(m.loss_weight, weight, rtol=1e-5)
 
@@ -127,16 +128,16 @@ class ClassifierTest(absltest.TestCase):
     rng = np.random.default_rng(3)
     photos = [rng.random((24, 40, 3)).astype(np.float32) for _ in range(2)]
     photos.append(photos[0])
-    feats = learned.pixel_features(photos, LC)
-    self.assertEqual(feats[0].shape, (24, 40, learned.feature_dims(LC)))
+    feats = features.pixel_features(photos, LC.net, LC.dims)
+    self.assertEqual(feats[0].shape, (24, 40, features.pixel_dims(LC.dims)))
     self.assertTrue(np.all(np.isfinite(feats[0])))
     np.testing.assert_array_equal(feats[0], feats[2])
     # On a canvas: each photo alone, zero around it.
     canvas = np.zeros((2, 30, 40, 3), np.float32)
     canvas[0, :24], canvas[1, :20, :32] = photos[0], photos[1][:20, :32]
-    placed = np.asarray(map_sources.learned_features(
+    placed = np.asarray(sources.learned_features(
         canvas, LC, np.array([[40, 24], [32, 20]])))
-    self.assertEqual(placed.shape, (2, 30, 40, learned.feature_dims(LC)))
+    self.assertEqual(placed.shape, (2, 30, 40, features.pixel_dims(LC.dims)))
     np.testing.assert_array_equal(placed[0, 24:], 0.0)
     np.testing.assert_array_equal(placed[1, :, 32:], 0.0)
 

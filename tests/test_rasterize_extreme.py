@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from clipgs_jax import config
-from clipgs_jax import rasterize
+from clipgs_jax.render import rasterize
 import rasterize_ref
 import synthetic
 
@@ -167,7 +167,7 @@ class ExtremeTest(parameterized.TestCase):
     self.assertEqual(int(out.num_overflow), int(out.max_tile_count) - 8)
     # The kept ones are the 8 nearest, so the result equals the reference
     # render of those 8 alone.
-    from clipgs_jax import project  # pylint: disable=g-import-not-at-top
+    from clipgs_jax.render import project  # pylint: disable=g-import-not-at-top
     proj = project.project(p, jnp.ones(n, bool), cam, near=cfg.near,
                            sh_degree=0)
     depth = np.where(np.asarray(proj.valid), np.asarray(proj.depths), np.inf)

@@ -6,8 +6,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from clipgs_jax import config
-from clipgs_jax import project
-from clipgs_jax import rasterize
+from clipgs_jax.render import project
+from clipgs_jax.render import rasterize
 import rasterize_ref
 import synthetic
 

@@ -6,9 +6,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from clipgs_jax import config as config_lib
-from clipgs_jax import rasterize
 from clipgs_jax import render_without
 from clipgs_jax.data import scene as scene_lib
+from clipgs_jax.render import rasterize
 import synthetic
 
 CFG = config_lib.Config()

@@ -10,8 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from clipgs_jax import guidance_config
-from clipgs_jax import map_sources
-from clipgs_jax import residual
+from clipgs_jax.maps import residual
+from clipgs_jax.maps import sources
 
 
 class QuantileTest(parameterized.TestCase):
@@ -167,16 +167,16 @@ class SourceTest(absltest.TestCase):
     stats = residual.ResidualState.initial().replace(
         threshold=jnp.float32(0.5))
     view = jnp.int32(0)
-    plain = map_sources.residual_map(
-        map_sources.ResidualSource(), stats, view, render, photo,
+    plain = sources.residual_map(
+        sources.ResidualSource(), stats, view, render, photo,
         jnp.int32(5), jax.random.key(0), self._rc())
     np.testing.assert_array_equal(plain.transient[5:11, 5:11], 1.0)
     self.assertEqual(float(jnp.sum(plain.transient[:3])), 0.0)
     np.testing.assert_array_equal(plain.loss_weight, 1.0 - plain.transient)
     # The gate keeps the residual test only where p(transient) > 0.5.
     semantic = jnp.zeros((1, 16, 16)).at[0, :, :8].set(0.9)
-    gated = map_sources.residual_map(
-        map_sources.ResidualSource(semantic=semantic), stats, view, render,
+    gated = sources.residual_map(
+        sources.ResidualSource(semantic=semantic), stats, view, render,
         photo, jnp.int32(5), jax.random.key(0), self._rc())
     np.testing.assert_array_equal(gated.transient[:, 8:], 0.0)
     np.testing.assert_array_equal(gated.transient[:, :8],
@@ -189,26 +189,26 @@ class SourceTest(absltest.TestCase):
     rc = self._rc(min_share=0.05)   # 20 of 400 pixels
     for size, kept in ((4, False), (6, True)):
       render = photo.at[:size, :size].set(1.0)
-      rmap = map_sources.residual_map(
-          map_sources.ResidualSource(), stats, jnp.int32(0), render, photo,
+      rmap = sources.residual_map(
+          sources.ResidualSource(), stats, jnp.int32(0), render, photo,
           jnp.int32(5), jax.random.key(0), self._rc())
       self.assertEqual(float(jnp.sum(rmap.transient)) >= 20, kept)
-      floored = map_sources.residual_map(
-          map_sources.ResidualSource(), stats, jnp.int32(0), render, photo,
+      floored = sources.residual_map(
+          sources.ResidualSource(), stats, jnp.int32(0), render, photo,
           jnp.int32(5), jax.random.key(0), rc)
       np.testing.assert_array_equal(floored.transient,
                                     rmap.transient if kept else 0.0)
       np.testing.assert_array_equal(floored.loss_weight,
                                     rmap.loss_weight if kept else 1.0)
-      stages = map_sources.residual_stages(
-          map_sources.ResidualSource(), stats, jnp.int32(0), render,
+      stages = sources.residual_stages(
+          sources.ResidualSource(), stats, jnp.int32(0), render,
           jnp.ones((20, 20)), photo, rc)
       np.testing.assert_array_equal(stages["share"], floored.transient)
     # On a larger canvas the share counts the photo's pixels only: the
     # 4x4 miss is under 5 % of the canvas, over 5 % of a 10x10 photo.
     valid = jnp.zeros((20, 20)).at[:10, :10].set(1.0)
-    floored = map_sources.residual_map(
-        map_sources.ResidualSource(), stats, jnp.int32(0),
+    floored = sources.residual_map(
+        sources.ResidualSource(), stats, jnp.int32(0),
         photo.at[:4, :4].set(1.0), photo, jnp.int32(5), jax.random.key(0),
         rc, valid=valid)
     self.assertGreater(float(jnp.sum(floored.transient)), 5.0)
@@ -219,11 +219,11 @@ class SourceTest(absltest.TestCase):
     stats = residual.ResidualState.initial().replace(
         threshold=jnp.float32(0.5))
     rc = self._rc(start=100)
-    rmap = map_sources.residual_map(
-        map_sources.ResidualSource(), stats, jnp.int32(0), render, photo,
+    rmap = sources.residual_map(
+        sources.ResidualSource(), stats, jnp.int32(0), render, photo,
         jnp.int32(99), jax.random.key(0), rc)
-    maps = [map_sources.held_back(rmap, map_sources.ResidualSource(),
-                                  jnp.int32(0), jnp.int32(step), rc)
+    maps = [sources.held_back(rmap, sources.ResidualSource(),
+                              jnp.int32(0), jnp.int32(step), rc)
             for step in (99, 100)]
     np.testing.assert_array_equal(maps[0].transient, 0.0)
     np.testing.assert_array_equal(maps[0].loss_weight, 1.0)
@@ -238,16 +238,16 @@ class SourceTest(absltest.TestCase):
     render = photo.at[:, :8].set(0.8).at[:, 8:].set(1.0).at[::2, 8:].set(0.6)
     stats = residual.ResidualState.initial().replace(
         threshold=jnp.float32(0.5))
-    source = map_sources.ResidualSource(
+    source = sources.ResidualSource(
         labels=jnp.zeros((1, 16, 16), jnp.int32).at[0, :, 8:].set(1),
         num_regions=2)
     rc = self._rc(uniformity=0.2, uniform_until=100)
-    rmap = map_sources.residual_map(source, stats, jnp.int32(0), render,
-                                    photo, jnp.int32(99), jax.random.key(0),
-                                    rc)
+    rmap = sources.residual_map(source, stats, jnp.int32(0), render,
+                                photo, jnp.int32(99), jax.random.key(0),
+                                rc)
     np.testing.assert_array_equal(rmap.transient, 1.0)
-    early, late = [map_sources.held_back(rmap, source, jnp.int32(0),
-                                         jnp.int32(step), rc)
+    early, late = [sources.held_back(rmap, source, jnp.int32(0),
+                                     jnp.int32(step), rc)
                    for step in (99, 100)]
     np.testing.assert_array_equal(early.transient[:, :8], 1.0)
     np.testing.assert_array_equal(early.transient[:, 8:], 0.0)
@@ -256,12 +256,12 @@ class SourceTest(absltest.TestCase):
     np.testing.assert_array_equal(late.loss_weight, rmap.loss_weight)
     # A looser gate passes the striped region too; without regions (the
     # per-pixel map) there is nothing to gate.
-    loose = map_sources.held_back(
+    loose = sources.held_back(
         rmap, source, jnp.int32(0), jnp.int32(99),
         self._rc(uniformity=0.3, uniform_until=100))
     np.testing.assert_array_equal(loose.transient, 1.0)
-    per_pixel = map_sources.held_back(rmap, map_sources.ResidualSource(),
-                                      jnp.int32(0), jnp.int32(99), rc)
+    per_pixel = sources.held_back(rmap, sources.ResidualSource(),
+                                  jnp.int32(0), jnp.int32(99), rc)
     self.assertIs(per_pixel, rmap)
 
   def test_alpha_gate_keeps_transients_only_on_rendered_surface(self):
@@ -270,10 +270,10 @@ class SourceTest(absltest.TestCase):
     stats = residual.ResidualState.initial().replace(
         threshold=jnp.float32(0.5))
     alpha = jnp.ones((16, 16)).at[:, 8:].set(0.3)  # no surface on the right
-    args = (map_sources.ResidualSource(), stats, jnp.int32(0), render, photo,
+    args = (sources.ResidualSource(), stats, jnp.int32(0), render, photo,
             jnp.int32(5), jax.random.key(0))
-    plain = map_sources.residual_map(*args, self._rc(), alpha=alpha)
-    gated = map_sources.residual_map(
+    plain = sources.residual_map(*args, self._rc(), alpha=alpha)
+    gated = sources.residual_map(
         *args, self._rc(min_alpha=0.5), alpha=alpha)
     np.testing.assert_array_equal(gated.transient[:, :8],
                                   plain.transient[:, :8])
@@ -282,7 +282,7 @@ class SourceTest(absltest.TestCase):
     # The unmasked pixels are trained: the loss weight follows the map.
     np.testing.assert_array_equal(gated.loss_weight, 1.0 - gated.transient)
     with self.assertRaisesRegex(ValueError, "needs the render's alpha"):
-      map_sources.residual_map(*args, self._rc(min_alpha=0.5))
+      sources.residual_map(*args, self._rc(min_alpha=0.5))
 
   def test_alpha_gate_follows_feature_regions(self):
     photo = jnp.zeros((16, 16, 3))
@@ -296,11 +296,11 @@ class SourceTest(absltest.TestCase):
     args = (stats, jnp.int32(0), render, photo, jnp.int32(5),
             jax.random.key(0))
     rc = self._rc(min_alpha=0.5)
-    pixels = map_sources.residual_map(
-        map_sources.ResidualSource(), *args, rc, alpha=alpha)
+    pixels = sources.residual_map(
+        sources.ResidualSource(), *args, rc, alpha=alpha)
     np.testing.assert_array_equal(pixels.transient, alpha > 0.5)
-    regions = map_sources.residual_map(
-        map_sources.ResidualSource(labels=labels, num_regions=2), *args,
+    regions = sources.residual_map(
+        sources.ResidualSource(labels=labels, num_regions=2), *args,
         rc, alpha=alpha)
     # Each region gets its majority's verdict, its empty pixels and its
     # rendered ones alike.
@@ -314,12 +314,12 @@ class SourceTest(absltest.TestCase):
     render = photo.at[:10].set(1.0)        # rows 0-9 miss
     stats = residual.ResidualState.initial().replace(
         threshold=jnp.float32(0.5))
-    source = map_sources.ResidualSource(
+    source = sources.ResidualSource(
         labels=jnp.zeros((1, 16, 16), jnp.int32).at[0, :, 8:].set(1)
         .at[0, 12:].set(1), num_regions=2)
     # After the 3x3 rule region 0 (left, rows 0-11) fails the test on 80
     # of its 96 pixels, region 1 (the rest) on 80 of its 160.
-    maps = {v: map_sources.residual_map(
+    maps = {v: sources.residual_map(
         source, stats, jnp.int32(0), render, photo, jnp.int32(5),
         jax.random.key(0), self._rc(vote=v)).transient
             for v in (0.5, 0.7, 0.9)}
@@ -334,23 +334,23 @@ class SourceTest(absltest.TestCase):
     render = photo.at[2:14, 2:14].set(1.0).at[6:10, 6:10].set(0.2)
     stats = residual.ResidualState.initial().replace(
         threshold=jnp.float32(0.5))
-    source = map_sources.ResidualSource(
+    source = sources.ResidualSource(
         semantic=jnp.zeros((1, 16, 16)).at[0, :, :12].set(0.9),
         labels=jnp.zeros((1, 16, 16), jnp.int32).at[0, 8:].set(1),
         num_regions=2)
     alpha = jnp.ones((16, 16)).at[:, :3].set(0.3)
     rc = self._rc(min_alpha=0.5)
-    stages = map_sources.residual_stages(source, stats, jnp.int32(0),
-                                         render, alpha, photo, rc)
+    stages = sources.residual_stages(source, stats, jnp.int32(0),
+                                     render, alpha, photo, rc)
     self.assertEqual(list(stages), ["threshold", "rule", "vote",
                                     "semantic", "alpha", "share"])
-    self.assertEqual(tuple(k for k in map_sources.STAGES if k in stages),
+    self.assertEqual(tuple(k for k in sources.STAGES if k in stages),
                      tuple(stages))
     # The low residual in the middle fails the threshold; the 3x3 rule
     # calls its interior static.
     np.testing.assert_array_equal(stages["threshold"][6:10, 6:10], 0.0)
     np.testing.assert_array_equal(stages["rule"][7:9, 7:9], 0.0)
-    transient = map_sources.residual_map(
+    transient = sources.residual_map(
         source, stats, jnp.int32(0), render, photo, jnp.int32(5),
         jax.random.key(0), rc, alpha=alpha).transient
     np.testing.assert_array_equal(stages["share"], transient)
@@ -359,7 +359,7 @@ class SourceTest(absltest.TestCase):
   def test_oracle_patch_pools_to_the_grid(self):
     masks = np.zeros((2, 28, 42), bool)
     masks[0, :14, :21] = True         # one quadrant: 7 x 7 cells of 14 x 14
-    maps = np.asarray(map_sources.oracle_patch_maps(masks, 14))
+    maps = np.asarray(sources.oracle_patch_maps(masks, 14))
     self.assertEqual(maps.shape, (2, 28, 42))
     self.assertAlmostEqual(maps[0, 2, 2], 1.0, places=5)
     self.assertAlmostEqual(maps[0, 25, 38], 0.0, places=5)

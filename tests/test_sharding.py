@@ -20,17 +20,18 @@ from clipgs_jax import config
 from clipgs_jax import config_file
 from clipgs_jax import evaluation
 from clipgs_jax import guidance
+from clipgs_jax import guidance_config
 from clipgs_jax import losses
-from clipgs_jax import map_sources
 from clipgs_jax import metrics
-from clipgs_jax import project
-from clipgs_jax import rasterize
-from clipgs_jax import residual
 from clipgs_jax import sharding
 from clipgs_jax import step
 from clipgs_jax import train
 from clipgs_jax import view
 from clipgs_jax.data import scene as scene_lib
+from clipgs_jax.maps import residual
+from clipgs_jax.maps import sources
+from clipgs_jax.render import project
+from clipgs_jax.render import rasterize
 import sharded_run  # tests/, on sys.path under pytest
 import synthetic
 import test_train
@@ -271,7 +272,7 @@ class CanvasTest(absltest.TestCase):
     alive = jnp.ones((40,), bool)
     stats = residual.ResidualState.initial().replace(
         threshold=jnp.float32(0.1))
-    args = (params, alive, stats, map_sources.ResidualSource())
+    args = (params, alive, stats, sources.ResidualSource())
     on_canvas = evaluation.view_map(*args, cut, 1, cfg, jnp.int32(1))
     by_itself = evaluation.view_map(*args, alone, 0, cfg, jnp.int32(1))
     self.assertGreater(float(np.sum(by_itself)), 0.05 * 18 * 24)
@@ -285,7 +286,7 @@ class CanvasTest(absltest.TestCase):
     res = jnp.asarray(np.random.default_rng(0).random((30, 32)), jnp.float32)
     valid = sharding.valid_mask(jnp.array([18, 24]), 30, 32)
     self.assertEqual(float(jnp.sum(residual.counts(res, valid))), 24 * 18)
-    for rule in residual.RULES:
+    for rule in guidance_config.RESIDUAL_RULES:
       inlier = residual.inliers(res, 0.5, rule, valid)
       alone = residual.inliers(res[:24, :18], 0.5, rule)
       np.testing.assert_array_equal(inlier[:24, :18], alone)

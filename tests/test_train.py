@@ -6,6 +6,7 @@ pytest process compiles the train step once for both files.
 
 import dataclasses
 import os
+import types
 
 import jax
 import jax.numpy as jnp
@@ -164,6 +165,19 @@ class ViewAndBackgroundTest(absltest.TestCase):
     with self.assertRaisesRegex(ValueError, "resolve"):
       train.init_state(TEST_CFG, *gaussians.empty(4, 1))
 
+  def test_resolve_renders_onto_the_photos_background(self):
+    # Photos with alpha composited onto black: the run renders onto black
+    # (and fills the extent); photos without alpha keep the config's.
+    # resolve reads a scene's extent and background alone.
+    white = dataclasses.replace(TEST_CFG, train=dataclasses.replace(
+        TEST_CFG.train, background=(1.0, 1.0, 1.0)))
+    on_black = types.SimpleNamespace(extent=2.5, background=(0.0, 0.0, 0.0))
+    cfg = train.resolve(white, on_black)
+    self.assertEqual(tuple(cfg.train.background), (0.0, 0.0, 0.0))
+    self.assertEqual(cfg.scene_extent, 2.5)
+    kept = train.resolve(white, types.SimpleNamespace(extent=2.5,
+                                                      background=None))
+    self.assertEqual(tuple(kept.train.background), (1.0, 1.0, 1.0))
 
   def test_a_perfect_render_gives_finite_step_metrics(self):
     # No Gaussian alive, a black background and black photos: the render

@@ -27,11 +27,11 @@ from clipgs_jax import camera as camera_lib
 from clipgs_jax import config as config_lib
 from clipgs_jax import fileio
 from clipgs_jax import plots
-from clipgs_jax import project as project_lib
-from clipgs_jax import rasterize
 from clipgs_jax import run as run_lib
 from clipgs_jax import semantic
 from clipgs_jax.data import billboards
+from clipgs_jax.render import project as project_lib
+from clipgs_jax.render import rasterize
 
 EVIDENCE_JSON = "evidence.json"
 EVIDENCE_PNG = "evidence.png"

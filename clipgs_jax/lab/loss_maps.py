@@ -8,7 +8,7 @@ two ways a map fails: transient views where it misses or overreaches
 (lowest IoU) and views with no transient where it masks anyway (most
 masked pixels). For the residual map, where its recall goes: the share of
 the ground truth's pixels still transient after each of the map's steps
-(map_sources.residual_stages), and with feature regions the most their
+(sources.residual_stages), and with feature regions the most their
 majority vote could keep (every region that the ground truth fills at
 least half of). With the run of the scene's clean twin (the same cameras,
 no transients), how far a residual test at the run's threshold could reach:
@@ -24,16 +24,16 @@ import numpy as np
 from matplotlib import figure
 
 from clipgs_jax import evaluation
-from clipgs_jax import features
 from clipgs_jax import fileio
 from clipgs_jax import guidance
-from clipgs_jax import map_sources
 from clipgs_jax import plots
-from clipgs_jax import residual
 from clipgs_jax import run as run_lib
 from clipgs_jax import sh
 from clipgs_jax.data import canvas
 from clipgs_jax.data import scene as scene_lib
+from clipgs_jax.maps import features
+from clipgs_jax.maps import residual
+from clipgs_jax.maps import sources
 
 LOSS_MAPS_JSON = "loss_maps.json"
 LOSS_MAPS_PNG = "loss_maps.png"
@@ -184,7 +184,7 @@ def loss_map_report(workdir: str, count: int = 3,
   scorer = guidance.make_scorer(cfg, scene)
   degree = sh.active_degree(state.step, cfg.densify.sh_degree_every,
                             cfg.gaussians.sh_degree)
-  by_stage = (isinstance(scorer, map_sources.ResidualSource)
+  by_stage = (isinstance(scorer, sources.ResidualSource)
               and views.masks is not None)
   if clean_run is not None and not by_stage:
     raise ValueError(f"--clean_run needs a residual-map run on a scene with "
@@ -195,7 +195,7 @@ def loss_map_report(workdir: str, count: int = 3,
       state.params, state.alive, state.maps, scorer, views, cfg, degree,
       by_stage)):
     if by_stage:
-      m = map_sources.in_stage_order(m)
+      m = sources.in_stage_order(m)
       labels = (None if scorer.labels is None else
                 canvas.crop(views, i, np.asarray(scorer.labels[i])))
       for key, c in stage_counts(m, truth, labels,

@@ -4,7 +4,7 @@ Three tests of each training pixel, scored against the ground-truth masks
 (precision, recall, IoU over all training views), to tell a map's failure
 from its inputs' limit:
   * "features": the learned map's classifier (learned.predict on
-    learned.pixel_features, the run's LearnedConfig) trained offline on
+    features.pixel_features, the run's LearnedConfig) trained offline on
     the ground-truth masks of every training view, balanced as the online
     one is: the most its features can tell, with perfect labels. Also the
     precision where its ranking reaches RECALL_TARGET of the transients.
@@ -30,9 +30,10 @@ import numpy as np
 from clipgs_jax import camera as camera_lib
 from clipgs_jax import evaluation
 from clipgs_jax import fileio
-from clipgs_jax import learned
-from clipgs_jax import rasterize
 from clipgs_jax import run as run_lib
+from clipgs_jax.maps import features
+from clipgs_jax.maps import learned
+from clipgs_jax.render import rasterize
 
 MAP_LIMITS_JSON = "map_limits.json"
 FIT_STEPS = 3000            # one view per Adam step, as the online fit
@@ -178,9 +179,10 @@ def map_limits_report(workdir: str) -> dict:
     out["multiview"][str(tol)] = {"alone": scores(mv, truth),
                                   "with_residual": scores(mv & over_median,
                                                           truth)}
-  prob = fit_classifier(np.stack(learned.pixel_features(views.images,
-                                                        cfg.learned)),
-                        truth, cfg.learned)
+  lc = cfg.learned
+  prob = fit_classifier(
+      np.stack(features.pixel_features(views.images, lc.net, lc.dims)),
+      truth, lc)
   out["features"] = {"scores": scores(prob > evaluation.MAP_THRESHOLD, truth),
                      "precision_at_recall": precision_at_recall(
                          prob, truth, RECALL_TARGET)}

@@ -17,7 +17,6 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from clipgs_jax import blend
 from clipgs_jax import camera
 from clipgs_jax import checkpoint
 from clipgs_jax import config as config_lib
@@ -25,11 +24,12 @@ from clipgs_jax import gaussians
 from clipgs_jax import guidance
 from clipgs_jax import losses
 from clipgs_jax import optim
-from clipgs_jax import project
-from clipgs_jax import rasterize
 from clipgs_jax import step as step_lib
 from clipgs_jax import train
 from clipgs_jax.data import scene as scene_lib
+from clipgs_jax.render import blend
+from clipgs_jax.render import project
+from clipgs_jax.render import rasterize
 
 # Stand-in of a densified model (and the frustum scene): opacity logit
 # spread (mostly 0.05-0.95); the jitter of a resampled point, in units of

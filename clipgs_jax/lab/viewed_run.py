@@ -17,15 +17,15 @@ from clipgs_jax import config as config_lib
 from clipgs_jax import evaluation
 from clipgs_jax import gaussians
 from clipgs_jax import guidance
-from clipgs_jax import learned
 from clipgs_jax import ply
-from clipgs_jax import residual
 from clipgs_jax import run as run_lib
 from clipgs_jax import semantic
 from clipgs_jax import sh
 from clipgs_jax import state as state_lib
 from clipgs_jax import train
 from clipgs_jax.data import default_scene
+from clipgs_jax.maps import learned
+from clipgs_jax.maps import residual
 
 SPLITS = ("train", "test")
 SCORE_COLORMAP = "viridis"     # s_j, low to high; no red in it, so the

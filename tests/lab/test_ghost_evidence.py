@@ -13,12 +13,12 @@ from clipgs_jax import camera as camera_lib
 from clipgs_jax import checkpoint
 from clipgs_jax import config as config_lib
 from clipgs_jax import config_file
-from clipgs_jax.lab import ghost_evidence
 from clipgs_jax import fileio
-from clipgs_jax import rasterize
 from clipgs_jax import train
 from clipgs_jax.data import billboards
 from clipgs_jax.data import scene as scene_lib
+from clipgs_jax.lab import ghost_evidence
+from clipgs_jax.render import rasterize
 from test_billboards import built  # pylint: disable=unused-import,g-bad-import-order
 
 NUM_GHOSTS = 3          # Gaussians put on the first billboard

@@ -3,9 +3,9 @@
 import jax.numpy as jnp
 import numpy as np
 
-from clipgs_jax.lab import timing
 from clipgs_jax import camera
-from clipgs_jax import project
+from clipgs_jax.lab import timing
+from clipgs_jax.render import project
 
 
 def test_time_calls_counts_and_rounds():

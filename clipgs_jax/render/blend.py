@@ -28,7 +28,7 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from clipgs_jax import project as project_lib
+from clipgs_jax.render import project as project_lib
 
 MAX_ALPHA = 0.99               # cap so 1 / (1 - alpha) stays <= 100
 # A pixel stops blending when its transmittance would fall below this; the

@@ -18,10 +18,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from clipgs_jax import features
 from clipgs_jax import guidance_config
-from clipgs_jax import learned
-from clipgs_jax import residual
+from clipgs_jax.maps import features
+from clipgs_jax.maps import learned
+from clipgs_jax.maps import residual
 
 # The combination rule: a pixel the residual test calls transient stays
 # transient only where the semantic map's p(transient) exceeds this.
@@ -52,7 +52,7 @@ class ResidualSource:
       test inside them.
     num_regions: the regions' label count (static).
     pixel_features: float32 [V, H, W, F] or None: each training photo's
-      per-pixel features (learned.pixel_features); given, the map is the
+      per-pixel features (features.pixel_features); given, the map is the
       learned map, transient where the classifier's p(inlier) <
       LEARNED_CUT (the classifier is TrainState.maps.classifier), voted
       over the regions if any.
@@ -257,12 +257,13 @@ def in_stage_order(stages: dict) -> dict:
 
 def learned_features(images, lc, sizes=None) -> jax.Array:
   """float32 [V, H, W, F], every training photo's per-pixel features for
-  the learned map (learned.pixel_features, once per photo); with `sizes`
+  the learned map (features.pixel_features, once per photo); with `sizes`
   (int [V, 2]) each photo's alone, 0 on the canvas around it."""
   if sizes is None:
-    return jnp.asarray(np.stack(learned.pixel_features(images, lc)))
-  feats = learned.pixel_features(
-      [im[:h, :w] for im, (w, h) in zip(images, sizes)], lc)
+    return jnp.asarray(np.stack(
+        features.pixel_features(images, lc.net, lc.dims)))
+  feats = features.pixel_features(
+      [im[:h, :w] for im, (w, h) in zip(images, sizes)], lc.net, lc.dims)
   out = np.zeros(np.shape(images)[:3] + (feats[0].shape[-1],), np.float32)
   for o, f in zip(out, feats):
     o[:f.shape[0], :f.shape[1]] = f

@@ -13,11 +13,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from clipgs_jax import blend as blend_lib
 from clipgs_jax import camera as camera_lib
 from clipgs_jax import config as config_lib
 from clipgs_jax import gaussians
-from clipgs_jax import project as project_lib
+from clipgs_jax.render import blend as blend_lib
+from clipgs_jax.render import project as project_lib
 
 MAX_ALPHA = blend_lib.MAX_ALPHA
 TRANSMITTANCE_THRESHOLD = blend_lib.TRANSMITTANCE_THRESHOLD
