@@ -218,7 +218,9 @@ class ResidualConfig:
   uniformity: float = 0.35     # features: before uniform_until, a region
   #   the vote calls transient is masked only where the residual's
   #   std / mean over its pixels is below this (0: no such gate)
-  uniform_until: int = 10_000  # paper steps, scaled (1,250 of 2,500)
+  uniform_until: int = 1_250   # steps, not scaled with the run: the
+  #   early render's smear is gone by then at any length (scaled to 3,500
+  #   of a 7k run it cost the row 2.7 / 1.9 dB, s0 / s1, by step 2,800)
   min_alpha: float = 0.9       # transient only where the render's alpha
   #   exceeds this (with features: in a region where most pixels' alpha
   #   does); 0: everywhere. Where the model has no surface a high residual
@@ -228,11 +230,11 @@ class ResidualConfig:
   #   (0: off; bonsai's clean twin's fit errors mark up to 2.1 %)
 
   def scaled_to(self, steps: int) -> "ResidualConfig":
-    """The schedule scaled from the paper's 20k steps to `steps`."""
+    """The schedule scaled from the paper's 20k steps to `steps`
+    (uniform_until is not: a step count at any length)."""
     f = steps / PAPER_STEPS
     return dataclasses.replace(
         self, start=_scale(self.start, f) if self.start else 0,
-        uniform_until=_scale(self.uniform_until, f),
         warmup=self.warmup / f)
 
   def problems(self) -> list[str]:

@@ -55,8 +55,10 @@ def get_config():
           "residual": {
               "semantic": dict(pixel["semantic"], scorer="residual"),
               "pixel": pixel["pixel"],
+              # The early uniformity gate to step 350, half the run,
+              # as measured.
               "residual": {"features": "alex", "min_threshold": 0.0,
-                           "min_share": 0.0},
+                           "min_share": 0.0, "uniform_until": 350},
               "train": {"lambda_dssim": 0.0}},
           "oracle_pixel_masked": dict(
               pixel, semantic=dict(pixel["semantic"], scorer="oracle")),

@@ -125,7 +125,9 @@ class ScheduleTest(parameterized.TestCase):
         guidance_config.ResidualConfig(start=5000).scaled_to(2000).start, 500)
     self.assertEqual(
         guidance_config.ResidualConfig(start=0).scaled_to(2000).start, 0)
+    # The early uniformity gate ends at a step, whatever the run's length.
     self.assertEqual(rc.scaled_to(2500).uniform_until, 1250)
+    self.assertEqual(rc.scaled_to(7000).uniform_until, 1250)
     # Config.scaled_to scales both sections.
     both = config.Config().scaled_to(2000)
     self.assertEqual((both.semantic, both.residual),
