@@ -30,7 +30,6 @@ import functools
 import importlib.util
 import os
 import random
-import struct
 import sys
 import tempfile
 import time
@@ -74,53 +73,33 @@ def missing(peers_dir: str, names) -> list[str]:
   return out
 
 
-def qvec(rotation: np.ndarray) -> np.ndarray:
-  """float64 [4], the unit quaternion (w, x, y, z), w >= 0, of a rotation
-  matrix (COLMAP's images.bin convention)."""
-  r = np.asarray(rotation, np.float64)
-  k = np.array([
-      [r[0, 0] - r[1, 1] - r[2, 2], 0, 0, 0],
-      [r[1, 0] + r[0, 1], r[1, 1] - r[0, 0] - r[2, 2], 0, 0],
-      [r[2, 0] + r[0, 2], r[2, 1] + r[1, 2], r[2, 2] - r[0, 0] - r[1, 1], 0],
-      [r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1],
-       r[0, 0] + r[1, 1] + r[2, 2]]]) / 3.0
-  values, vectors = np.linalg.eigh(k)
-  x, y, z, w = vectors[:, np.argmax(values)]
-  q = np.array([w, x, y, z])
-  return q if w >= 0 else -q
-
-
 def write_colmap(views, points: np.ndarray, colours: np.ndarray,
                  folder: str) -> None:
   """A COLMAP folder of `views` (data.scene.Views, one canvas size):
-  sparse/0/{cameras,images,points3D}.bin (binary format, PINHOLE camera
-  per view, no 2D observations or tracks) and images/NNNNN.png, view i
-  as i (names without RobustNeRF's split words)."""
-  sparse = os.path.join(folder, "sparse", "0")
-  os.makedirs(sparse, exist_ok=True)
-  os.makedirs(os.path.join(folder, "images"), exist_ok=True)
+  sparse/0 (binary, written by pycolmap: a PINHOLE camera per view, no 2D
+  observations or tracks) and images/NNNNN.png, view i as i (names
+  without RobustNeRF's split words)."""
+  import pycolmap  # pylint: disable=import-outside-toplevel  # see colmap.py
   cams = views.cameras
   w, h = int(cams.width), int(cams.height)
-  with open(os.path.join(sparse, "cameras.bin"), "wb") as f:
-    f.write(struct.pack("<Q", len(views)))
-    for i in range(len(views)):
-      f.write(struct.pack("<iiQQ", i + 1, 1, w, h))   # 1: PINHOLE
-      f.write(struct.pack("<4d", cams.fx[i], cams.fy[i], cams.cx[i],
-                          cams.cy[i]))
-  names = []
-  with open(os.path.join(sparse, "images.bin"), "wb") as f:
-    f.write(struct.pack("<Q", len(views)))
-    for i in range(len(views)):
-      names.append(f"{i:05d}.png")
-      f.write(struct.pack("<i4d3di", i + 1, *qvec(cams.rotation[i]),
-                          *np.asarray(cams.translation[i], np.float64), i + 1))
-      f.write(names[-1].encode() + b"\0" + struct.pack("<Q", 0))
-  with open(os.path.join(sparse, "points3D.bin"), "wb") as f:
-    f.write(struct.pack("<Q", len(points)))
-    rgb = np.clip(np.round(np.asarray(colours) * 255), 0, 255).astype(int)
-    for j, (p, c) in enumerate(zip(np.asarray(points, np.float64), rgb)):
-      f.write(struct.pack("<Q3d3Bd", j + 1, *p, *c, 0.0))
-      f.write(struct.pack("<Q", 0))
+  rec = pycolmap.Reconstruction()
+  names = [f"{i:05d}.png" for i in range(len(views))]
+  for i, name in enumerate(names):
+    rec.add_camera_with_trivial_rig(pycolmap.Camera(
+        camera_id=i + 1, model="PINHOLE", width=w, height=h,
+        params=[cams.fx[i], cams.fy[i], cams.cx[i], cams.cy[i]]))
+    pose = pycolmap.Rigid3d(
+        pycolmap.Rotation3d(np.asarray(cams.rotation[i], np.float64)),
+        np.asarray(cams.translation[i], np.float64))
+    rec.add_image_with_trivial_frame(
+        pycolmap.Image(name=name, camera_id=i + 1, image_id=i + 1), pose)
+  rgb = np.clip(np.round(np.asarray(colours) * 255), 0, 255).astype(np.uint8)
+  for p, c in zip(np.asarray(points, np.float64), rgb):
+    rec.add_point3D(p, pycolmap.Track(), c)
+  sparse = os.path.join(folder, "sparse", "0")
+  os.makedirs(sparse, exist_ok=True)
+  rec.write_binary(sparse)
+  os.makedirs(os.path.join(folder, "images"), exist_ok=True)
   for name, photo in zip(names, views.images):
     images_lib.write_png(os.path.join(folder, "images", name), photo)
 

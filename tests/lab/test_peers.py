@@ -9,21 +9,6 @@ from clipgs_jax.data import scene as scene_lib
 from clipgs_jax.lab import peers
 
 
-def _rotation(q):
-  w, x, y, z = q
-  return np.array([
-      [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
-
-
-def test_qvec_inverts_the_rotation():
-  rng = np.random.default_rng(0)
-  for q in rng.normal(size=(20, 4)):
-    q = q / np.linalg.norm(q) * np.sign(q[0])
-    np.testing.assert_allclose(peers.qvec(_rotation(q)), q, atol=1e-9)
-
-
 def test_write_colmap_reloads_as_the_same_views(tmp_path):
   source = scene_lib.load_scene(default_scene.ensure_default_scene())
   folder = str(tmp_path / "peer_scene")
