@@ -34,11 +34,18 @@ def plot(curve_paths: list[str], out_path: str,
     raise ValueError(f"plots: {len(labels)} labels for "
                      f"{len(curve_paths)} curves.")
   fig = figure.Figure(figsize=(6, 4), dpi=120)
-  ax = fig.subplots()
-  for i, path in enumerate(curve_paths):
-    curve = _read(path)
-    label = (labels[i] if labels else
-             os.path.basename(os.path.dirname(os.path.abspath(path))))
+  draw_curves(fig.subplots(), {
+      (labels[i] if labels else
+       os.path.basename(os.path.dirname(os.path.abspath(path)))): _read(path)
+      for i, path in enumerate(curve_paths)}, x)
+  save_figure(fig, out_path)
+
+
+def draw_curves(ax, curves: dict[str, list[dict]], x: str = "seconds"
+                ) -> None:
+  """Test MSE (log) of each {label: [{step, seconds, test_psnr}]} curve
+  against `x` ("seconds" or "step") on `ax`, the last PSNR written by it."""
+  for label, curve in curves.items():
     xs = [p[x] for p in curve]
     mse = [10 ** (-p["test_psnr"] / 10) for p in curve]
     ax.plot(xs, mse, marker="o", markersize=3, label=label)
@@ -51,7 +58,6 @@ def plot(curve_paths: list[str], out_path: str,
   ax.set_ylabel("test MSE = 10^(-PSNR/10)")
   ax.grid(True, which="both", alpha=0.3)
   ax.legend(fontsize=8)
-  save_figure(fig, out_path)
 
 
 def side_by_side(images, titles: list[str], out_path: str,

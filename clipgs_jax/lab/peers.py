@@ -42,6 +42,7 @@ import numpy as np
 from clipgs_jax import config_file
 from clipgs_jax import fileio
 from clipgs_jax import metrics as metrics_lib
+from clipgs_jax import plots
 from clipgs_jax import run as run_lib
 from clipgs_jax.data import images as images_lib
 from clipgs_jax.data import scene as scene_lib
@@ -203,19 +204,12 @@ def train_ours(scene_path: str, downscale: int, steps: int, seed: int,
 
 
 def plot(runs: dict, path: str) -> None:
-  """PSNR against training seconds and against steps, a line a system."""
-  fig = figure.Figure(figsize=(9, 3.5))
-  for ax, x, label in zip(fig.subplots(1, 2), ("seconds", "step"),
-                          ("training wall time (s)", "step")):
-    for name, curve in runs.items():
-      ax.plot([p[x] for p in curve], [p["test_psnr"] for p in curve], "o-",
-              label=name)
-    ax.set_xlabel(label)
-    ax.set_ylabel("test PSNR (dB)")
-    ax.grid(alpha=0.3)
-  fig.axes[0].legend()
-  fig.tight_layout()
-  fileio.atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=120), ".png")
+  """Test error against training seconds and against steps, a line a
+  system (plots.draw_curves)."""
+  fig = figure.Figure(figsize=(10, 4), dpi=120)
+  for ax, x in zip(fig.subplots(1, 2), ("seconds", "step")):
+    plots.draw_curves(ax, runs, x)
+  plots.save_figure(fig, path)
 
 
 def bench(peers_dir: str, names, scene_path: str, downscale: int,
