@@ -228,6 +228,11 @@ class ResidualConfig:
   min_share: float = 0.03      # a view whose map, after the gates, marks
   #   less than this share of its pixels is clean: no transient pixel
   #   (0: off; bonsai's clean twin's fit errors mark up to 2.1 %)
+  remember: bool = False       # a pixel the map marks from uniform_until
+  #   on stays transient in its view for the rest of the run, however
+  #   well the model then fits it (False: each step's map alone). A
+  #   transient the map misses at one visit is fit from that view, its
+  #   residual falls and the map loses it: recall decays over a run
 
   def scaled_to(self, steps: int) -> "ResidualConfig":
     """The schedule scaled from the paper's 20k steps to `steps`

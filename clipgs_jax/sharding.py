@@ -142,8 +142,10 @@ def _pad_canvas(x: np.ndarray, height: int, width: int) -> np.ndarray:
   return np.pad(x, pad + [(0, 0)] * (x.ndim - 4))
 
 
-def _canvas(width: int, height: int) -> tuple[int, int]:
-  """The canvas every process's lanes share: the largest of theirs."""
+def canvas_of(scene) -> tuple[int, int]:
+  """(width, height) of the canvas every process's lanes share: the
+  largest of their training images."""
+  height, width = np.shape(scene.train.images)[1:3]
   size = np.array([width, height], np.int64)
   if jax.process_count() > 1:
     size = np.max(multihost_utils.process_allgather(size), axis=0)
@@ -191,7 +193,7 @@ def lanes_of(scene, batch_size: int, mesh: Mesh
                      f"{cams.height} but images are "
                      f"{np.shape(views.images)}; images must be [V, "
                      f"{cams.height}, {cams.width}, 3].")
-  cw, ch = _canvas(width, height)
+  cw, ch = canvas_of(scene)
   sizes = getattr(views, "sizes", None)
   if sizes is None and (cw, ch) != (width, height):
     sizes = np.tile(np.array([width, height], np.int32), (len(views), 1))

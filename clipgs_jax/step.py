@@ -49,6 +49,8 @@ from clipgs_jax import state as state_lib
 from clipgs_jax import view as view_lib
 from clipgs_jax.maps import residual as residual_lib
 
+# The per-view output that carries each view's map memory (not a metric).
+_MEMORY = "map_memory"
 # Per-view metrics the step reports as their mean over the batch; the
 # per-step keys (guidance.per_step_keys) are kept per view.
 _MEAN_KEYS = ("loss", "l1", "ssim", "psnr", "semantic_loss",
@@ -107,6 +109,8 @@ def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
   # A mesh of one device runs this without shard_map: no collectives.
   across = num_devices > 1
   first = jax.lax.axis_index(sharding.AXIS) * local if across else 0
+  remembers = (scorer is not None and cfg.uses_residual
+               and cfg.residual.remember)
 
   def one_view(i):
     lane = first + i
@@ -122,9 +126,12 @@ def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
       valid = sharding.valid_mask(size, height, width)
       canvas, w, h = (size, valid), size[0], size[1]
     view_scorer = sharding.scorer_at(scorer, i)
+    # The view's index in the training views (as the metric "view").
+    index = lane + pos * batch
+    memory = (state.maps.memory[index] if remembers else None)
     vp = view_lib.render_and_grad(
         state, view_scorer, cfg, view=pos, cam=cam, target=target, bg=bg,
-        degree=degree, key=key, canvas=canvas)
+        degree=degree, key=key, canvas=canvas, memory=memory)
     proj = jax.lax.stop_gradient(vp.proj)
     seen = densify.on_screen(proj, w, h) & state.alive
     dens = densify.accumulate(state_lib.DensifyStats.zeros(capacity),
@@ -135,7 +142,9 @@ def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
                "psnr": metrics_lib.psnr(vp.out.image, target, valid),
                "num_overflow": vp.out.num_overflow,
                "max_tile_count": vp.out.max_tile_count,
-               "view": lane + pos * batch}
+               "view": index}
+    if remembers:
+      metrics[_MEMORY] = vp.memory
     evidence, hist = None, None
     if scorer is not None:
       evidence, extra = view_lib.semantic_increment(
@@ -172,6 +181,8 @@ def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
               if cfg.uses_learned and scorer is not None else None))
     sums, per_view = jax.lax.scan(body, zeros, jnp.arange(local))
   grads, dens, evidence, hist, classifier_grad = sums
+  # Not a metric: each view's memory after the step, written back below.
+  memory = per_view.pop(_MEMORY) if remembers else None
   grad_accum, denom, max_radius = dens.grad_accum, dens.denom, dens.max_radius
   if across:
     grads, grad_accum, denom, evidence, hist, classifier_grad = jax.lax.psum(
@@ -179,6 +190,8 @@ def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
         sharding.AXIS)
     max_radius = jax.lax.pmax(max_radius, sharding.AXIS)
     per_view = jax.lax.all_gather(per_view, sharding.AXIS, tiled=True)
+    if remembers:
+      memory = jax.lax.all_gather(memory, sharding.AXIS, tiled=True)
 
   params, opt_state, grad_norms = optim.apply(state, grads, cfg, batch)
   old = state.densify
@@ -190,6 +203,8 @@ def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
     semantic_stats = jax.tree.map(jnp.add, state.semantic, evidence)
   if hist is not None:
     maps = view_lib.update_maps(maps, cfg, hist, classifier_grad)
+  if remembers:
+    maps = maps.replace(memory=maps.memory.at[per_view["view"]].set(memory))
   metrics = {k: (jnp.mean(v) if k in _MEAN_KEYS else v)
              for k, v in per_view.items()}
   metrics.update(

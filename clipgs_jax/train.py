@@ -34,11 +34,22 @@ CHECKPOINT_NAME = "checkpoint.npz"
 
 
 def init_state(cfg: config_lib.Config, params: gaussians.GaussianParams,
-               alive) -> state_lib.TrainState:
-  """Step-0 state: zero moments and statistics, the run's key from seed."""
+               alive, memory_shape: tuple[int, int, int] | None = None
+               ) -> state_lib.TrainState:
+  """Step-0 state: zero moments and statistics, the run's key from seed.
+
+  `memory_shape` (training views, canvas height, width) sizes the residual
+  map's memory, which cfg.residual.remember needs (`initial_state` gives
+  the scene's).
+  """
   if not cfg.scene_extent > 0:
     raise ValueError("train.init_state: cfg.scene_extent must be positive; "
                      "call train.resolve(cfg, scene) first.")
+  remembers = cfg.uses_residual and cfg.residual.remember
+  if remembers and memory_shape is None:
+    raise ValueError("train.init_state: --config.residual.remember=True "
+                     "needs memory_shape (the training views and their "
+                     "canvas); use initial_state.")
   alive = jnp.asarray(alive, bool)
   gaussians.validate(params, alive)
   params = jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), params)
@@ -53,7 +64,9 @@ def init_state(cfg: config_lib.Config, params: gaussians.GaussianParams,
       maps=(residual_lib.ResidualState.initial(
           learned.init(cfg.learned, jax.random.fold_in(
               jax.random.key(cfg.train.seed), _CLASSIFIER_STREAM))
-          if cfg.uses_learned else None) if cfg.uses_residual else None))
+          if cfg.uses_learned else None,
+          memory_shape if remembers else None)
+            if cfg.uses_residual else None))
 
 
 def resolve(cfg: config_lib.Config, scene) -> config_lib.Config:
@@ -86,7 +99,9 @@ def initial_state(cfg: config_lib.Config, scene) -> state_lib.TrainState:
   params, alive = initialize.initialize(
       points, getattr(scene, "point_colors", None), centers, cfg.gaussians,
       seed=cfg.train.seed)
-  return init_state(cfg, params, alive)
+  num_views = len(np.asarray(cams.fx))
+  width, height = sharding.canvas_of(scene)
+  return init_state(cfg, params, alive, (num_views, height, width))
 
 
 def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,

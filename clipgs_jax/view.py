@@ -95,6 +95,8 @@ class ViewPass(NamedTuple):
       Gaussian (out.evidence), or None.
     classifier_grad: the learned map's d loss / d classifier params of
       this view (learned.gradient), or None.
+    memory: bool [H, W], the view's map memory after this visit
+      (sources.remember), or None.
   """
   loss: jax.Array
   out: rasterize.RenderOutput
@@ -106,14 +108,15 @@ class ViewPass(NamedTuple):
   probe_grad: jax.Array | None
   evidence_map: jax.Array | None
   classifier_grad: dict[str, jax.Array] | None = None
+  memory: jax.Array | None = None
 
 
 def render_and_grad(state: state_lib.TrainState, scorer,
                     cfg: config_lib.Config, *, view: jax.Array,
                     cam: camera_lib.Camera, target: jax.Array,
                     bg: jax.Array, degree: jax.Array, key: jax.Array,
-                    canvas: tuple[jax.Array, jax.Array] | None = None
-                    ) -> ViewPass:
+                    canvas: tuple[jax.Array, jax.Array] | None = None,
+                    memory: jax.Array | None = None) -> ViewPass:
   """Renders one training view and differentiates its loss.
 
   Renders the view (project + rasterize, with a zero offset on the splat
@@ -135,6 +138,10 @@ def render_and_grad(state: state_lib.TrainState, scorer,
     canvas: None, or (int32 [2] width and height of the view's photo, float
       [H, W] 1 inside it): the view lies in the top-left corner of a larger
       canvas, and no pixel outside it is drawn, fitted or counted.
+    memory: bool [H, W], the view's residual map memory
+      (ResidualState.memory[v] for the view's index v in the training
+      views), or None: given, the step's map holds what it remembers
+      (sources.remember).
   """
   step = state.step
   sem = cfg.semantic
@@ -158,13 +165,16 @@ def render_and_grad(state: state_lib.TrainState, scorer,
     out = rasterize.rasterize(proj, cam, bg, cfg.render,
                               evidence_map=evidence_map, probe=probe,
                               valid_size=size)
-    weight, rmap = loss_weight, None
+    weight, rmap, remembered = loss_weight, None, None
     if dynamic:
       rmap = sources.residual_map(scorer, state.maps, view, out.image,
                                   target, step, sample_key, cfg.residual,
                                   valid=valid,
                                   alpha=jax.lax.stop_gradient(out.alpha))
       rmap = sources.held_back(rmap, scorer, view, step, cfg.residual)
+      if memory is not None:
+        rmap, remembered = sources.remember(rmap, memory, step,
+                                             cfg.residual)
       if cfg.pixel.loss_masking:
         weight = rmap.loss_weight
     loss, terms = losses.photometric(out.image, target,
@@ -179,18 +189,18 @@ def render_and_grad(state: state_lib.TrainState, scorer,
       terms["semantic_loss"] = guidance.opacity_regularizer(
           state.semantic, params.opacity_logits, state.alive, step, cfg)
       loss = loss + terms["semantic_loss"]
-    return loss, (out, proj, terms, rmap)
+    return loss, (out, proj, terms, rmap, remembered)
 
   offset = jnp.zeros((state.capacity, 2), state.params.means.dtype)
   probe_grad = None
   if dynamic:
     probe = jnp.zeros((state.capacity,), state.params.means.dtype)
-    (loss, (out, proj, terms, rmap)), (grads, grad2d, probe_grad) = (
-        jax.value_and_grad(loss_fn, argnums=(0, 1, 2), has_aux=True)(
-            state.params, offset, probe))
+    (loss, aux), (grads, grad2d, probe_grad) = jax.value_and_grad(
+        loss_fn, argnums=(0, 1, 2), has_aux=True)(state.params, offset, probe)
   else:
-    (loss, (out, proj, terms, rmap)), (grads, grad2d) = jax.value_and_grad(
+    (loss, aux), (grads, grad2d) = jax.value_and_grad(
         loss_fn, argnums=(0, 1), has_aux=True)(state.params, offset, None)
+  out, proj, terms, rmap, remembered = aux
   classifier_grad = None
   if dynamic and cfg.uses_learned:
     # Labelled by the test on this step's residual, before the step's
@@ -199,7 +209,7 @@ def render_and_grad(state: state_lib.TrainState, scorer,
         state.maps.classifier.params, scorer.pixel_features[view],
         rmap.residual, state.maps, cfg.residual, cfg.learned, valid)
   return ViewPass(loss, out, proj, terms, rmap, grads, grad2d, probe_grad,
-                  evidence_map, classifier_grad)
+                  evidence_map, classifier_grad, remembered)
 
 
 def reproduced_evidence(due, proj, cam, bg, cfg, evidence_map, image,

@@ -5,7 +5,7 @@ process, since a process's device count is fixed when JAX starts.
       (XLA_FLAGS=--xla_force_host_platform_device_count=2): into OUT/
       sharded/ a B = 2 run over both devices, into OUT/resumed/ the same
       run killed at KILL_AT and resumed, into OUT/unsharded/ the B = 2 run
-      on one device.
+      on one device, and OUT/memory.npz (`memory_step`).
   python tests/sharded_run.py process OUT ID PORT: process ID of a
       two-process run (one device each) into OUT/two_process/.
 
@@ -138,6 +138,31 @@ def main(mode: str, out: str, *args):
   fit("resumed", stop_after=KILL_AT)
   fit("resumed", resume=True)
   fit("unsharded", devices=jax.devices()[:1])
+  memory_step(cfg, full, out)
+
+
+def memory_step(cfg, scene, out: str) -> None:
+  """One B = 2 step over both devices of the residual map with its memory
+  and threshold 0 (every photo pixel transient); writes the memory and
+  the step's views to OUT/memory.npz."""
+  import jax  # pylint: disable=g-import-not-at-top
+  from clipgs_jax import guidance  # pylint: disable=g-import-not-at-top
+  from clipgs_jax import step  # pylint: disable=g-import-not-at-top
+  from clipgs_jax import train  # pylint: disable=g-import-not-at-top
+  cfg = dataclasses.replace(
+      cfg, semantic=dataclasses.replace(cfg.semantic, scorer="residual"),
+      residual=dataclasses.replace(cfg.residual, min_threshold=0.0,
+                                   min_alpha=0.0, min_share=0.0,
+                                   uniform_until=0, remember=True))
+  state = train.initial_state(cfg, scene)
+  state = state.replace(maps=state.maps.replace(
+      threshold=jax.numpy.float32(0)))
+  fn, lanes, state, scorer = step.for_scene(
+      cfg, scene, state, guidance.make_scorer(cfg, scene))
+  state, metrics = fn(state, lanes, scorer)
+  np.savez(os.path.join(out, "memory.npz"),
+           memory=np.asarray(state.maps.memory),
+           views=np.asarray(metrics["view"]))
 
 
 if __name__ == "__main__":

@@ -9,9 +9,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from clipgs_jax import config_file
+from clipgs_jax import guidance
 from clipgs_jax import guidance_config
+from clipgs_jax import step as step_lib
+from clipgs_jax import train
 from clipgs_jax.maps import residual
 from clipgs_jax.maps import sources
+from test_checkpoint import _assert_states_equal  # pylint: disable=g-bad-import-order
+from test_train import synthetic_scene  # pylint: disable=g-bad-import-order
 
 
 class QuantileTest(parameterized.TestCase):
@@ -356,6 +362,46 @@ class SourceTest(absltest.TestCase):
     np.testing.assert_array_equal(stages["share"], transient)
     np.testing.assert_array_equal(stages["semantic"][:, 12:], 0.0)
 
+  def test_memory_holds_what_the_map_marked(self):
+    photo = jnp.zeros((8, 8, 3))
+    stats = residual.ResidualState.initial(memory_shape=(2, 8, 8)).replace(
+        threshold=jnp.float32(0.5))
+    rc = self._rc(remember=True, uniform_until=5)
+    source = sources.ResidualSource()
+    miss = photo.at[:4, :4].set(1.0)       # a 4x4 transient at first
+
+    def visit(render, memory, step):
+      rmap = sources.residual_map(source, stats, jnp.int32(1), render,
+                                  photo, jnp.int32(step), jax.random.key(0),
+                                  rc)
+      return sources.remember(rmap, memory, jnp.int32(step), rc)
+
+    # Before uniform_until the map is used, not remembered.
+    early, memory = visit(miss, stats.memory[1], 4)
+    self.assertEqual(float(early.transient[0, 0]), 1.0)
+    self.assertEqual(memory.dtype, jnp.bool_)
+    np.testing.assert_array_equal(memory, False)
+    first, memory = visit(miss, memory, 5)
+    np.testing.assert_array_equal(memory, first.transient > 0)
+    # The model then fits the miss: the test passes it, the memory holds it
+    # out of the loss.
+    for step in (6, 7):
+      later, memory = visit(photo, memory, step)
+      np.testing.assert_array_equal(later.transient, first.transient)
+      np.testing.assert_array_equal(later.loss_weight,
+                                    1.0 - first.transient)
+    np.testing.assert_array_equal(memory, first.transient > 0)
+    # The evaluation map and the stages read the memory as the step does.
+    held = stats.replace(memory=stats.memory.at[1].set(memory))
+    m = sources.view_map(source, held, jnp.int32(1), photo, jnp.ones((8, 8)),
+                         photo, rc)
+    np.testing.assert_array_equal(m, first.transient)
+    stages = sources.residual_stages(source, held, jnp.int32(1), photo,
+                                     jnp.ones((8, 8)), photo, rc)
+    self.assertEqual(list(sources.in_stage_order(stages))[-1], "memory")
+    np.testing.assert_array_equal(stages["memory"], m)
+    np.testing.assert_array_equal(stages["share"], 0.0)
+
   def test_oracle_patch_pools_to_the_grid(self):
     masks = np.zeros((2, 28, 42), bool)
     masks[0, :14, :21] = True         # one quadrant: 7 x 7 cells of 14 x 14
@@ -367,6 +413,70 @@ class SourceTest(absltest.TestCase):
     # Pooling keeps the transient area (bilinear upsampling, half-pixel
     # centres, spreads it a little at the edge).
     self.assertAlmostEqual(maps[0].mean(), masks[0].mean(), delta=0.02)
+
+
+
+def _memory_config(steps: int, batch: int = 1):
+  """The smoke preset with the residual map, its memory on and no gate
+  that needs a fitted model."""
+  cfg = config_file.named("smoke")
+  return dataclasses.replace(
+      cfg,
+      semantic=dataclasses.replace(cfg.semantic, scorer="residual",
+                                   evidence="pixel", accumulate_start=0,
+                                   reg_start=10, prune_start=1000),
+      pixel=guidance_config.PixelConfig(loss_masking=True),
+      residual=dataclasses.replace(cfg.residual, min_threshold=0.0,
+                                   min_alpha=0.0, min_share=0.0,
+                                   uniform_until=0, remember=True),
+      train=dataclasses.replace(cfg.train, steps=steps, batch_size=batch,
+                                eval_every=0, log_every=10,
+                                checkpoint_every=0))
+
+
+class MemoryRunTest(absltest.TestCase):
+
+  def test_a_step_writes_its_views_memory(self):
+    # Threshold 0: every pixel of the step's two views is transient, so
+    # their rows (the metric "view") are marked, no other.
+    scene = synthetic_scene()
+    cfg = train.resolve(_memory_config(1, batch=2), scene)
+    state = train.initial_state(cfg, scene)
+    num_views, size = scene.train.images.shape[:2]
+    self.assertEqual(state.maps.memory.shape, (num_views, size, size))
+    state = state.replace(maps=state.maps.replace(threshold=jnp.float32(0)))
+    step, lanes, state, scorer = step_lib.for_scene(
+        cfg, scene, state, guidance.make_scorer(cfg, scene))
+    state, metrics = step(state, lanes, scorer)
+    views = sorted(int(v) for v in metrics["view"])
+    memory = np.asarray(state.maps.memory)
+    for v in range(num_views):
+      np.testing.assert_array_equal(memory[v], v in views,
+                                    err_msg=f"view {v} (stepped: {views})")
+
+  def test_without_the_memory_size_init_refuses(self):
+    scene = synthetic_scene()
+    cfg = train.resolve(_memory_config(1), scene)
+    plain = train.initial_state(dataclasses.replace(
+        cfg, residual=dataclasses.replace(cfg.residual, remember=False)),
+        scene)
+    self.assertIsNone(plain.maps.memory)
+    with self.assertRaisesRegex(ValueError, "residual.remember=True"):
+      train.init_state(cfg, plain.params, plain.alive)
+
+  def test_resume_is_bit_identical(self):
+    scene = synthetic_scene()
+    cfg = train.resolve(_memory_config(20), scene)
+    scorer = guidance.make_scorer(cfg, scene)
+    fit = lambda workdir, **kw: train.fit(cfg, scene, workdir,
+                                          scorer=scorer, progress=False,
+                                          **kw)
+    straight = fit(self.create_tempdir().full_path)
+    workdir = self.create_tempdir().full_path
+    fit(workdir, stop_after=10)
+    resumed = fit(workdir, resume=True)
+    _assert_states_equal(resumed.state, straight.state)
+    self.assertTrue(np.any(straight.state.maps.memory))
 
 
 if __name__ == "__main__":

@@ -98,6 +98,16 @@ class ShardedRunsTest(absltest.TestCase):
                else np.max(np.abs(v)))
       np.testing.assert_allclose(unsharded[k], v, rtol=0, atol=1e-6 * scale,
                                  err_msg=k)
+    # The residual map's memory: each device's view written to its row on
+    # both, inside the photo only.
+    with np.load(os.path.join(out, "memory.npz")) as data:
+      memory, views = data["memory"], sorted(data["views"].tolist())
+    scene = sharded_run.canvas_scene()
+    self.assertLen(views, sharded_run.BATCH)
+    for v, (w, h) in enumerate(scene.train.sizes):
+      inside = np.zeros(memory.shape[1:], bool)
+      inside[:h, :w] = v in views
+      np.testing.assert_array_equal(memory[v], inside, err_msg=f"view {v}")
 
 
 class LanesTest(absltest.TestCase):

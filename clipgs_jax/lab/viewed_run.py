@@ -158,7 +158,8 @@ def load(path: str) -> ViewedRun:
           histogram=field("maps/", "histogram"),
           threshold=field("maps/", "threshold"),
           classifier=(learned.Classifier(params=weights, opt_state=None)
-                      if weights else None))
+                      if weights else None),
+          memory=arrays.get(f"{checkpoint.STATE_PREFIX}maps/memory"))
     degree = int(sh.active_degree(int(field("step", "")),
                                   cfg.densify.sh_degree_every,
                                   cfg.gaussians.sh_degree))

@@ -49,16 +49,26 @@ class ResidualState:
     threshold: float32 [], the inlier threshold the next step uses.
     classifier: the learned map's classifier (learned.Classifier), trained
       on this test's confident pixels, or None (the residual map).
+    memory: bool [V, H, W] or None (ResidualConfig.remember off): for
+      each training view (its index in the scene's training views) and
+      canvas pixel, whether the map has marked it (sources.remember).
   """
   histogram: jax.Array
   threshold: jax.Array
   classifier: Any = None
+  memory: jax.Array | None = None
 
   @classmethod
-  def initial(cls, classifier: Any = None) -> "ResidualState":
+  def initial(cls, classifier: Any = None,
+              memory_shape: tuple[int, int, int] | None = None
+              ) -> "ResidualState":
+    """Nothing seen yet; `memory_shape` (views, height, width) sizes the
+    map's memory (None: none)."""
     return cls(histogram=jnp.zeros((HISTOGRAM_BINS,), jnp.float32),
                threshold=jnp.float32(INITIAL_THRESHOLD),
-               classifier=classifier)
+               classifier=classifier,
+               memory=(None if memory_shape is None
+                       else jnp.zeros(memory_shape, bool)))
 
 
 def residual(render: jax.Array, photo: jax.Array) -> jax.Array:

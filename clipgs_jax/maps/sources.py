@@ -37,7 +37,7 @@ LEARNED_CUT = 0.5
 # The residual map's steps in the order they apply (_test's, then _gates');
 # a map skips the steps its source and config do not have.
 STAGES = ("threshold", "rule", "learned", "vote", "semantic", "alpha",
-          "valid", "share")
+          "valid", "share", "memory")
 
 
 @flax.struct.dataclass
@@ -226,6 +226,32 @@ def held_back(rmap: ResidualMap, source: ResidualSource, view: jax.Array,
                       loss_weight=1.0 - on * (1.0 - rmap.loss_weight))
 
 
+def remember(rmap: ResidualMap, memory: jax.Array, step: jax.Array,
+             rc: guidance_config.ResidualConfig
+             ) -> tuple[ResidualMap, jax.Array]:
+  """`rmap` with its view's memory, and the view's memory after this visit.
+
+  A pixel the view's map has marked stays transient (out of the loss, in
+  the evidence) whatever the step's own map says: the fit learns a
+  transient the map misses, and the test then passes it. The memory
+  records from step rc.uniform_until: before it the early render's smear
+  makes false positives that it would keep.
+
+  Args:
+    rmap: the step's map (after held_back).
+    memory: bool [H, W], the view's memory (ResidualState.memory[view]).
+    step: int32 [], finished steps.
+    rc: the residual map's settings.
+  Returns:
+    (the map the step uses, bool [H, W] the view's new memory).
+  """
+  held = memory.astype(jnp.float32)
+  marked = (rmap.transient > 0) & (step >= rc.uniform_until)
+  return (rmap.replace(transient=jnp.maximum(rmap.transient, held),
+                       loss_weight=rmap.loss_weight * (1.0 - held)),
+          memory | marked)
+
+
 def residual_stages(source: ResidualSource,
                     stats: residual.ResidualState,
                     view: jax.Array,
@@ -236,15 +262,20 @@ def residual_stages(source: ResidualSource,
                     valid: jax.Array | None = None) -> dict[str, jax.Array]:
   """Where the residual map's transient pixels go: {step: the map after
   it}, float32 [H, W] in {0, 1}, for the steps of STAGES the map has; the
-  last of them in STAGES' order equals residual_map's `transient` (the
-  warm-up samples only the loss weight). Arguments as residual_map's."""
+  last of them in STAGES' order is view_map's map (the warm-up samples
+  only the loss weight; "memory" holds what the view's memory does:
+  remember). Arguments as residual_map's."""
   res = residual.residual(render, photo)
   stages = _test(source, stats, view, res, rc, valid)
   transient = list(stages.values())[-1]
   for name, gate in _gates(source, view, rc, valid, alpha).items():
     transient = stages[name] = transient * gate
   if rc.min_share > 0:
-    stages["share"] = transient * _marks_enough(transient, valid, rc)
+    transient = stages["share"] = transient * _marks_enough(transient, valid,
+                                                            rc)
+  if stats.memory is not None:
+    stages["memory"] = jnp.maximum(
+        transient, stats.memory[view].astype(jnp.float32))
   return stages
 
 
@@ -335,10 +366,14 @@ def view_map(scorer,
   the residual map for a ResidualSource (from `render` and `alpha`, the
   view rendered by the current model; `valid` as residual_map's; m does
   not depend on the warm-up's sampling, and before rc.start it
-  is the test's map, which the step does not use yet: held_back), else
-  the static map of a guidance.PixelMapScorer (`render` unread)."""
+  is the test's map, which the step does not use yet: held_back; with a
+  memory, the pixels it holds are transient too: remember), else the
+  static map of a guidance.PixelMapScorer (`render` unread)."""
   if isinstance(scorer, ResidualSource):
-    return residual_map(scorer, stats, view, render, photo, jnp.int32(0),
-                        jax.random.key(0), rc, valid=valid,
-                        alpha=alpha).transient
+    m = residual_map(scorer, stats, view, render, photo, jnp.int32(0),
+                     jax.random.key(0), rc, valid=valid,
+                     alpha=alpha).transient
+    if stats.memory is not None:
+      m = jnp.maximum(m, stats.memory[view].astype(jnp.float32))
+    return m
   return scorer.score_map(view)
