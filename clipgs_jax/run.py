@@ -160,6 +160,8 @@ def semantic_label(cfg: config_lib.Config) -> str:
       rule += (f", early only where even (std / mean < "
                f"{rc.uniformity:g})" if rc.uniformity
                else ", no early uniformity gate")
+    if rc.remember:
+      rule += ", remembered per view"
     if sem.scorer == "residual":
       return f"residual map ({rule}, no weights, no oracle)" + variant
     if sem.scorer == "learned":

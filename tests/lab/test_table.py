@@ -145,9 +145,10 @@ class FormatTest(absltest.TestCase):
     cfgs = {row: _row_cfg(row) for row in _table_cd().sweep.rows.split(",")}
     self.assertEqual(list(cfgs), [
         "vanilla", "oracle", "oracle_pixel", "oracle_pixel_masked", "clip",
-        "clip_pixel", "residual", "residual_features", "learned",
-        "oracle_patch_residual", "clip_residual", "clean", "residual_clean",
-        "residual_features_clean", "learned_clean"])
+        "clip_pixel", "residual", "residual_features",
+        "residual_features_remember", "learned", "oracle_patch_residual",
+        "clip_residual", "clean", "residual_clean", "residual_features_clean",
+        "residual_features_remember_clean", "learned_clean"])
     bench = config_file.named("benchmark")
     sem = bench.semantic      # scaled to the steps
     self.assertEqual(cfgs["vanilla"].semantic.scorer, "off")
@@ -173,7 +174,14 @@ class FormatTest(absltest.TestCase):
                      "oracle_patch")
     self.assertEqual(cfgs["residual_features_clean"].data.train_split,
                      "clean")
+    self.assertTrue(cfgs["residual_features_remember"].residual.remember)
+    self.assertEqual(
+        cfgs["residual_features_remember"].residual,
+        dataclasses.replace(cfgs["residual_features"].residual,
+                            remember=True))
     for row, control in (("residual_features", "residual_features_clean"),
+                         ("residual_features_remember",
+                          "residual_features_remember_clean"),
                          ("learned", "learned_clean")):
       for section in ("semantic", "pixel", "residual", "learned"):
         self.assertEqual(getattr(cfgs[control], section),
