@@ -188,6 +188,11 @@ class Config:
                             or self.residual.with_semantic)
 
   @property
+  def uses_memory(self) -> bool:
+    """The residual map keeps each view's marked pixels in the state."""
+    return self.uses_residual and self.residual.remember
+
+  @property
   def uses_learned(self) -> bool:
     """The residual test labels a classifier whose map the step uses."""
     return self.semantic.enabled and self.semantic.scorer == "learned"

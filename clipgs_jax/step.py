@@ -109,8 +109,7 @@ def device_step(state: state_lib.TrainState, lanes: sharding.Lanes, scorer,
   # A mesh of one device runs this without shard_map: no collectives.
   across = num_devices > 1
   first = jax.lax.axis_index(sharding.AXIS) * local if across else 0
-  remembers = (scorer is not None and cfg.uses_residual
-               and cfg.residual.remember)
+  remembers = scorer is not None and cfg.uses_memory
 
   def one_view(i):
     lane = first + i

@@ -45,8 +45,7 @@ def init_state(cfg: config_lib.Config, params: gaussians.GaussianParams,
   if not cfg.scene_extent > 0:
     raise ValueError("train.init_state: cfg.scene_extent must be positive; "
                      "call train.resolve(cfg, scene) first.")
-  remembers = cfg.uses_residual and cfg.residual.remember
-  if remembers and memory_shape is None:
+  if cfg.uses_memory and memory_shape is None:
     raise ValueError("train.init_state: --config.residual.remember=True "
                      "needs memory_shape (the training views and their "
                      "canvas); use initial_state.")
@@ -65,7 +64,7 @@ def init_state(cfg: config_lib.Config, params: gaussians.GaussianParams,
           learned.init(cfg.learned, jax.random.fold_in(
               jax.random.key(cfg.train.seed), _CLASSIFIER_STREAM))
           if cfg.uses_learned else None,
-          memory_shape if remembers else None)
+          memory_shape if cfg.uses_memory else None)
             if cfg.uses_residual else None))
 
 
@@ -99,9 +98,11 @@ def initial_state(cfg: config_lib.Config, scene) -> state_lib.TrainState:
   params, alive = initialize.initialize(
       points, getattr(scene, "point_colors", None), centers, cfg.gaussians,
       seed=cfg.train.seed)
-  num_views = len(np.asarray(cams.fx))
-  width, height = sharding.canvas_of(scene)
-  return init_state(cfg, params, alive, (num_views, height, width))
+  memory_shape = None
+  if cfg.uses_memory:
+    width, height = sharding.canvas_of(scene)
+    memory_shape = (len(np.asarray(cams.fx)), height, width)
+  return init_state(cfg, params, alive, memory_shape)
 
 
 def fit(cfg: config_lib.Config, scene, workdir: str, *, scorer=None,

@@ -73,7 +73,7 @@ def get_config():
   residual = {"semantic": {"scorer": "residual", **pixel},
               "pixel": {"loss_masking": True}}
   features = {"residual": {"features": "alex"}}
-  remember = {"residual": {"features": "alex", "remember": True}}
+  remember = _merge(features, {"residual": {"remember": True}})
   # The residual rows' settings, the map learned from their test.
   learned = _merge(residual, {"semantic": {"scorer": "learned"}})
   gated = {"residual": {"with_semantic": True}}

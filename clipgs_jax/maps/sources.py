@@ -245,11 +245,17 @@ def remember(rmap: ResidualMap, memory: jax.Array, step: jax.Array,
   Returns:
     (the map the step uses, bool [H, W] the view's new memory).
   """
-  held = memory.astype(jnp.float32)
   marked = (rmap.transient > 0) & (step >= rc.uniform_until)
-  return (rmap.replace(transient=jnp.maximum(rmap.transient, held),
-                       loss_weight=rmap.loss_weight * (1.0 - held)),
+  return (rmap.replace(transient=_held(rmap.transient, memory),
+                       loss_weight=rmap.loss_weight
+                       * (1.0 - memory.astype(jnp.float32))),
           memory | marked)
+
+
+def _held(transient: jax.Array, memory: jax.Array) -> jax.Array:
+  """float32 [H, W], `transient` with the pixels `memory` (bool [H, W])
+  holds marked too."""
+  return jnp.maximum(transient, memory.astype(jnp.float32))
 
 
 def residual_stages(source: ResidualSource,
@@ -274,8 +280,7 @@ def residual_stages(source: ResidualSource,
     transient = stages["share"] = transient * _marks_enough(transient, valid,
                                                             rc)
   if stats.memory is not None:
-    stages["memory"] = jnp.maximum(
-        transient, stats.memory[view].astype(jnp.float32))
+    stages["memory"] = _held(transient, stats.memory[view])
   return stages
 
 
@@ -374,6 +379,6 @@ def view_map(scorer,
                      jax.random.key(0), rc, valid=valid,
                      alpha=alpha).transient
     if stats.memory is not None:
-      m = jnp.maximum(m, stats.memory[view].astype(jnp.float32))
+      m = _held(m, stats.memory[view])
     return m
   return scorer.score_map(view)
