@@ -35,7 +35,8 @@ loss_maps: with pixel evidence, the map m of every training view with
   run), how many transient pixels differ from what lies behind them.
 map_limits: on a benchmark run, what a map could reach with the truth:
   the learned classifier fitted to the true masks, multi-view photo
-  consistency on the run's geometry, the bare residual test
+  consistency on the run's geometry, the bare residual test, and for a
+  remembered run its memory less a multi-view release
   (clipgs_jax/lab/map_limits.py): DIR/map_limits.json.
 curve: test MSE (log) against training time of each run's curve.json (a
   run folder or the curve.json itself).

@@ -16,11 +16,13 @@ from its inputs' limit:
     them hold a colour that differs from its own by over the colour
     tolerance (mean |difference| over channels; a few tolerances). Alone,
     and intersected with the residual over its median.
+  * "memory" (a run with residual.remember): the pixels its memory holds,
+    and those left after a multi-view release lets go of the held pixels
+    that at least MIN_SEEN views see and no majority disagrees with.
   * "residual": the final model's residual over its RESIDUAL_QUANTILE
     quantile (the residual map's default quantile, without its gates).
 """
 
-import functools
 import os
 
 import jax
@@ -98,11 +100,11 @@ def _bilinear(image, u, v):
           + image[y0 + 1, x0 + 1] * ax * ay)
 
 
-@functools.partial(jax.jit, static_argnames=("min_seen",))
-def disagreement(photos, depths, alphas, cameras, i, colour_tolerance,
-                 min_seen: int = MIN_SEEN):
-  """bool [H, W]: view i's pixels that more than half of the (at least
-  `min_seen`) other views seeing their surface point disagree with.
+@jax.jit
+def views_seeing(photos, depths, alphas, cameras, i, colour_tolerance):
+  """int [H, W] twice: how many other views see each of view i's surface
+  points, and how many of those hold a colour that differs from its own
+  by over `colour_tolerance`.
 
   Args:
     photos: float [V, H, W, 3]; depths, alphas: float [V, H, W], the
@@ -134,8 +136,22 @@ def disagreement(photos, depths, alphas, cameras, i, colour_tolerance,
     return seen, seen & (differ > colour_tolerance)
 
   seen, differs = jax.lax.map(other, jnp.arange(depths.shape[0]))
-  seen, differs = seen.sum(0), differs.sum(0)
+  return seen.sum(0), differs.sum(0)
+
+
+def disagrees(seen, differs, min_seen: int = MIN_SEEN):
+  """bool [H, W]: the pixels that more than half of the (at least
+  `min_seen`) other views seeing their surface point disagree with
+  (views_seeing's counts)."""
   return (seen >= min_seen) & (2 * differs > seen)
+
+
+def released(held, seen, differs, min_seen: int = MIN_SEEN):
+  """bool [H, W], the held pixels a multi-view release lets go: at least
+  `min_seen` other views see the surface point and no more than half of
+  them disagree with its colour (a held pixel too few views see cannot
+  be tested and stays held)."""
+  return held & (seen >= min_seen) & (2 * differs <= seen)
 
 
 def _renders(state, cfg, views):
@@ -152,7 +168,9 @@ def _renders(state, cfg, views):
 def map_limits_report(workdir: str) -> dict:
   """Writes MAP_LIMITS_JSON into a finished run folder and returns it:
   {"features": {"scores", "precision_at_recall"}, "multiview":
-  {tolerance: {"alone", "with_residual"}}, "residual": scores}.
+  {tolerance: {"alone", "with_residual"}}, "residual": scores}, and for a
+  remembered run "memory": {"alone": scores, "release": {tolerance:
+  scores}} (the held pixels, and those a multi-view release keeps).
 
   Raises:
     ValueError: the scene has no ground-truth masks, or photos of
@@ -173,12 +191,23 @@ def map_limits_report(workdir: str) -> dict:
   cams = jax.tree.map(jnp.asarray, views.cameras)
   photos, depths, alphas = (jnp.asarray(x) for x in
                             (views.images, depths, alphas))
+  # A remembered run (residual.remember): its held pixels alone, and less
+  # what a multi-view release would let go.
+  held = (None if state.maps.memory is None
+          else np.asarray(state.maps.memory))
+  if held is not None:
+    out["memory"] = {"alone": scores(held, truth), "release": {}}
   for tol in COLOUR_TOLERANCES:
-    mv = np.stack([np.asarray(disagreement(photos, depths, alphas, cams, i,
-                                           tol)) for i in range(len(views))])
+    counts = [tuple(map(np.asarray, views_seeing(photos, depths, alphas,
+                                                 cams, i, tol)))
+              for i in range(len(views))]
+    mv = np.stack([disagrees(*c) for c in counts])
     out["multiview"][str(tol)] = {"alone": scores(mv, truth),
                                   "with_residual": scores(mv & over_median,
                                                           truth)}
+    if held is not None:
+      kept = np.stack([h & ~released(h, *c) for h, c in zip(held, counts)])
+      out["memory"]["release"][str(tol)] = scores(kept, truth)
   lc = cfg.learned
   prob = fit_classifier(
       np.stack(features.pixel_features(views.images, lc.net, lc.dims)),
@@ -206,4 +235,9 @@ def summary(out: dict) -> list[str]:
     lines.append(f"  multi-view consistency, colour tolerance {tol}: "
                  f"{line(m['alone'])}; with the residual over its median "
                  f"{line(m['with_residual'])}")
+  if "memory" in out:
+    lines.append(f"  the map's memory: {line(out['memory']['alone'])}")
+    for tol, m in out["memory"]["release"].items():
+      lines.append(f"    less a multi-view release, colour tolerance {tol}: "
+                   f"{line(m)}")
   return lines

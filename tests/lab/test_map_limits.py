@@ -63,11 +63,16 @@ def _plane_views():
   return photos, depths, np.ones_like(depths), stacked
 
 
+def _counts(photos, depths, alphas, cams, i):
+  return tuple(np.asarray(x) for x in map_limits.views_seeing(
+      jnp.asarray(photos), jnp.asarray(depths), jnp.asarray(alphas), cams,
+      i, 0.1))
+
+
 def test_disagreement_finds_the_patch_only_where_it_is():
   photos, depths, alphas, cams = _plane_views()
-  out = [np.asarray(map_limits.disagreement(
-      jnp.asarray(photos), jnp.asarray(depths), jnp.asarray(alphas), cams,
-      i, 0.1, min_seen=2)) for i in range(len(CENTRES))]
+  out = [map_limits.disagrees(*_counts(photos, depths, alphas, cams, i),
+                               min_seen=2) for i in range(len(CENTRES))]
   patch = np.zeros((H, W), bool)
   patch[8:14, 12:20] = True
   # View 1's patch disagrees with every view that sees its wall.
@@ -81,9 +86,8 @@ def test_disagreement_finds_the_patch_only_where_it_is():
 
 def test_disagreement_needs_min_seen_views():
   photos, depths, alphas, cams = _plane_views()
-  out = np.asarray(map_limits.disagreement(
-      jnp.asarray(photos), jnp.asarray(depths), jnp.asarray(alphas), cams,
-      1, 0.1, min_seen=4))
+  out = map_limits.disagrees(*_counts(photos, depths, alphas, cams, 1),
+                             min_seen=4)
   assert not out.any()   # three other views at most
 
 
@@ -94,3 +98,22 @@ def test_summary_names_every_test():
   text = "\n".join(map_limits.summary(out))
   assert "0.50 / - / 0.25" in text
   assert "tolerance 0.1" in text and "P 0.80 at R 0.75" in text
+  assert "memory" not in text
+  out["memory"] = {"alone": s, "release": {"0.2": s}}
+  text = "\n".join(map_limits.summary(out))
+  assert "the map's memory: 0.50 / - / 0.25" in text
+  assert "release, colour tolerance 0.2" in text
+
+
+def test_release_lets_go_of_held_static_scene_only():
+  photos, depths, alphas, cams = _plane_views()
+  held = np.zeros((H, W), bool)
+  held[8:14, 12:20] = True       # view 1's patch
+  held[2:5, 2:6] = True          # and the wall, which the others agree on
+  seen, differs = _counts(photos, depths, alphas, cams, 1)
+  out = map_limits.released(held, seen, differs, min_seen=2)
+  assert not out[8:14, 12:20].any()
+  assert out[2:5, 2:6].any()
+  # A pixel too few views see stays held; nothing unheld is released.
+  assert not out[~held].any()
+  assert not map_limits.released(held, seen, differs, min_seen=9).any()
