@@ -151,7 +151,7 @@ def released(held, seen, differs, min_seen: int = MIN_SEEN):
   `min_seen` other views see the surface point and no more than half of
   them disagree with its colour (a held pixel too few views see cannot
   be tested and stays held)."""
-  return held & (seen >= min_seen) & (2 * differs <= seen)
+  return held & (seen >= min_seen) & ~disagrees(seen, differs, min_seen)
 
 
 def _renders(state, cfg, views):
