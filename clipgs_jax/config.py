@@ -229,12 +229,6 @@ class Config:
                  "residual test over regions: it needs --config.semantic."
                  "scorer=residual or learned, or --config.residual."
                  "with_semantic=True")
-    if rc.grow and (not self.uses_residual or self.uses_learned):
-      out.append("--config.residual.grow=True grows the residual map "
-                 "through its test at the plain quantile: it needs "
-                 "--config.semantic.scorer=residual or residual."
-                 "with_semantic=True (the learned map's verdict has no "
-                 "threshold to relax)")
     if (sem.enabled and sem.lambda_c == 0 and not sem.prune
         and not pixel.loss_masking):
       out.append("--config.semantic.lambda_c=0 with prune and loss_masking "

@@ -228,11 +228,6 @@ class ResidualConfig:
   min_share: float = 0.03      # a view whose map, after the gates, marks
   #   less than this share of its pixels is clean: no transient pixel
   #   (0: off; bonsai's clean twin's fit errors mark up to 2.1 %)
-  grow: bool = False           # the map, after its gates, grows through
-  #   the pixels the test at the plain quantile calls transient (its rule,
-  #   vote and gates; no median or absolute floor), joined to it by
-  #   8-neighbourhood: the floors pick the objects, the quantile their
-  #   extent (hysteresis; sources.grown)
   remember: bool = False       # a pixel the map marks from uniform_until
   #   on stays transient in its view for the rest of the run, however
   #   well the model then fits it (False: each step's map alone). A

@@ -362,58 +362,6 @@ class SourceTest(absltest.TestCase):
     np.testing.assert_array_equal(stages["share"], transient)
     np.testing.assert_array_equal(stages["semantic"][:, 12:], 0.0)
 
-  def test_grown_joins_the_room_connected_to_a_seed(self):
-    room = jnp.zeros((10, 10)).at[1:5, 1:5].set(1.0).at[5, 5].set(1.0)
-    room = room.at[6:9, 6:9].set(1.0)        # joined diagonally at (5, 5)
-    room = room.at[0, 8:].set(1.0)           # apart from every seed
-    seeds = jnp.zeros((10, 10)).at[2, 2].set(1.0)
-    out = sources.grown(seeds, room)
-    np.testing.assert_array_equal(out, room.at[0, 8:].set(0.0))
-    # A seed outside the room stays; no seed grows nothing.
-    lone = jnp.zeros((10, 10)).at[9, 0].set(1.0)
-    np.testing.assert_array_equal(sources.grown(lone, room), lone)
-    np.testing.assert_array_equal(sources.grown(jnp.zeros((10, 10)), room),
-                                  0.0)
-
-  def test_grow_takes_an_objects_quiet_rim_and_keeps_a_clean_view(self):
-    photo = jnp.zeros((16, 16, 3))
-    # A loud core (residual 0.8) in a quiet rim (0.3), and a quiet patch
-    # apart from it, on a fitted background (0.05); the past residuals'
-    # 0.7 quantile (0.2) is under the rim, the floored threshold (0.5)
-    # between rim and core.
-    render = (photo + 0.05).at[3:11, 3:11].set(0.3).at[5:9, 5:9].set(0.8)
-    render = render.at[13:16, 13:16].set(0.3)
-    stats = residual.update(residual.ResidualState.initial(),
-                            jnp.linspace(0.0, 0.2 / 0.7, 1000)[None],
-                            quantile=0.7, decay=0.0, minimum=0.5)
-    self.assertAlmostEqual(float(residual.histogram_quantile(
-        jnp.cumsum(stats.histogram), 0.7)), 0.2, delta=1e-3)
-    self.assertEqual(float(stats.threshold), 0.5)
-    source = sources.ResidualSource()
-    maps = {grow: sources.residual_map(
-        source, stats, jnp.int32(0), render, photo, jnp.int32(5),
-        jax.random.key(0), self._rc(grow=grow)) for grow in (False, True)}
-    # The 3x3 rule calls a square's corners static.
-    core = jnp.zeros((16, 16)).at[5:9, 5:9].set(1.0)
-    rim = jnp.zeros((16, 16)).at[3:11, 3:11].set(1.0)
-    core = core.at[jnp.array([5, 5, 8, 8]), jnp.array([5, 8, 5, 8])].set(0.0)
-    rim = rim.at[jnp.array([3, 3, 10, 10]), jnp.array([3, 10, 3, 10])].set(
-        0.0)
-    np.testing.assert_array_equal(maps[False].transient, core)
-    np.testing.assert_array_equal(maps[True].transient, rim)
-    np.testing.assert_array_equal(maps[True].loss_weight, 1.0 - rim)
-    stages = sources.residual_stages(source, stats, jnp.int32(0), render,
-                                     jnp.ones((16, 16)), photo,
-                                     self._rc(grow=True))
-    self.assertEqual(list(sources.in_stage_order(stages)),
-                     ["threshold", "rule", "share", "grow"])
-    np.testing.assert_array_equal(stages["grow"], rim)
-    # Only the quiet patch: nothing passes the floored test, nothing grows.
-    quiet = sources.residual_map(
-        source, stats, jnp.int32(0), render.at[5:9, 5:9].set(0.3), photo,
-        jnp.int32(5), jax.random.key(0), self._rc(grow=True))
-    np.testing.assert_array_equal(quiet.transient, 0.0)
-
   def test_memory_holds_what_the_map_marked(self):
     photo = jnp.zeros((8, 8, 3))
     stats = residual.ResidualState.initial(memory_shape=(2, 8, 8)).replace(

@@ -131,11 +131,7 @@ class BadValuesTest(parameterized.TestCase):
       ("features_need_the_residual_map",
        {"semantic": {"scorer": "oracle", "evidence": "pixel"},
         "residual": {"features": "alex"}},
-       "--config.residual.features=alex votes the residual test"),
-      ("grow_needs_a_threshold",
-       {"semantic": {"scorer": "learned", "evidence": "pixel"},
-        "residual": {"grow": True}},
-       "--config.residual.grow=True grows the residual map"))
+       "--config.residual.features=alex votes the residual test"))
   def test_bad_value(self, overrides, message):
     cd = _cd("default").to_dict()
     for section, values in overrides.items():

@@ -37,7 +37,7 @@ LEARNED_CUT = 0.5
 # The residual map's steps in the order they apply (_test's, then _gates');
 # a map skips the steps its source and config do not have.
 STAGES = ("threshold", "rule", "learned", "vote", "semantic", "alpha",
-          "valid", "share", "grow", "memory")
+          "valid", "share", "memory")
 
 
 @flax.struct.dataclass
@@ -149,39 +149,6 @@ def _marks_enough(transient: jax.Array, valid: jax.Array | None,
       jnp.float32)
 
 
-def grown(seeds: jax.Array, room: jax.Array) -> jax.Array:
-  """float32 [H, W] in {0, 1}: `seeds` and every pixel of `room` (both
-  float [H, W] in {0, 1}) joined to a seed through room's pixels, by
-  8-neighbourhood: hysteresis, the connected parts of the lenient map
-  that hold a pixel of the strict one."""
-  seeds, room = jax.lax.stop_gradient((seeds, room))
-
-  def spread(carry):
-    m, _ = carry
-    near = jax.lax.reduce_window(m, 0.0, jax.lax.max, (3, 3), (1, 1),
-                                 "SAME")
-    out = jnp.maximum(m, near * room)
-    return out, jnp.any(out != m)
-
-  return jax.lax.while_loop(lambda c: c[1], spread, (seeds, True))[0]
-
-
-def _room(source: ResidualSource, stats: residual.ResidualState,
-          view: jax.Array, res: jax.Array, rc: guidance_config.ResidualConfig,
-          valid: jax.Array | None, gates: dict[str, jax.Array]) -> jax.Array:
-  """float32 [H, W] in {0, 1}, where the strict map may grow (rc.grow):
-  the residual test at the histogram's rc.quantile alone (without the
-  median and absolute floors that set the step's threshold), its rule and
-  vote, and the gates."""
-  plain = residual.histogram_quantile(jnp.cumsum(stats.histogram),
-                                      rc.quantile)
-  lenient = stats.replace(threshold=jnp.minimum(plain, stats.threshold))
-  room = list(_test(source, lenient, view, res, rc, valid).values())[-1]
-  for gate in gates.values():
-    room = room * gate
-  return room
-
-
 def residual_map(source: ResidualSource,
                  stats: residual.ResidualState,
                  view: jax.Array,
@@ -212,36 +179,24 @@ def residual_map(source: ResidualSource,
       pixels' alpha does (the gate follows the region, as the vote does).
   A map that, after these gates, marks less than rc.min_share of
   the photo's pixels is empty, and the view's loss keeps every pixel.
-  With rc.grow the map then grows through the lenient test's pixels
-  (grown, _room).
   Raises:
     ValueError: rc.min_alpha > 0 and no alpha.
   """
   res = residual.residual(render, photo)
   transient = list(_test(source, stats, view, res, rc, valid).values())[-1]
-  gates = _gates(source, view, rc, valid, alpha)
   if source.pixel_features is None:
-    for gate in gates.values():
-      transient = transient * gate
-    if rc.min_share > 0:
-      transient = transient * _marks_enough(transient, valid, rc)
-    if rc.grow:
-      transient = grown(transient,
-                        _room(source, stats, view, res, rc, valid, gates))
-    # Bernoulli draws compare one uniform a pixel with its probability:
-    # sampling after the gates keeps the pixels sampling before them did.
-    dropped = 1.0 - residual.sample_inliers(1.0 - transient, step, key,
-                                            rc.warmup)
-    return ResidualMap(transient=transient, loss_weight=1.0 - dropped,
-                       residual=res)
-  # SLS-mlp weights the loss by p, a transient pixel's by 0; the warm-up
-  # keeps its sampled pixels whole.
-  weight = (1.0 - transient) * _inlier_probability(source, stats, view,
-                                                   valid)
-  kept = residual.sample_inliers(jnp.zeros_like(transient), step, key,
-                                 rc.warmup)
-  dropped = (1.0 - weight) * (1.0 - kept)
-  for gate in gates.values():
+    kept = residual.sample_inliers(1.0 - transient, step, key,
+                                   rc.warmup)
+    dropped = 1.0 - kept
+  else:
+    # SLS-mlp weights the loss by p, a transient pixel's by 0; the warm-up
+    # keeps its sampled pixels whole.
+    weight = (1.0 - transient) * _inlier_probability(source, stats, view,
+                                                     valid)
+    kept = residual.sample_inliers(jnp.zeros_like(transient), step, key,
+                                   rc.warmup)
+    dropped = (1.0 - weight) * (1.0 - kept)
+  for gate in _gates(source, view, rc, valid, alpha).values():
     transient, dropped = transient * gate, dropped * gate
   if rc.min_share > 0:
     big = _marks_enough(transient, valid, rc)
@@ -319,15 +274,11 @@ def residual_stages(source: ResidualSource,
   res = residual.residual(render, photo)
   stages = _test(source, stats, view, res, rc, valid)
   transient = list(stages.values())[-1]
-  gates = _gates(source, view, rc, valid, alpha)
-  for name, gate in gates.items():
+  for name, gate in _gates(source, view, rc, valid, alpha).items():
     transient = stages[name] = transient * gate
   if rc.min_share > 0:
     transient = stages["share"] = transient * _marks_enough(transient, valid,
                                                             rc)
-  if rc.grow:
-    transient = stages["grow"] = grown(
-        transient, _room(source, stats, view, res, rc, valid, gates))
   if stats.memory is not None:
     stages["memory"] = _held(transient, stats.memory[view])
   return stages
