@@ -23,6 +23,7 @@ from its inputs' limit:
     quantile (the residual map's default quantile, without its gates).
 """
 
+import functools
 import os
 
 import jax
@@ -100,16 +101,17 @@ def _bilinear(image, u, v):
           + image[y0 + 1, x0 + 1] * ax * ay)
 
 
-@jax.jit
-def views_seeing(photos, depths, alphas, cameras, i, colour_tolerance):
-  """int [H, W] twice: how many other views see each of view i's surface
-  points, and how many of those hold a colour that differs from its own
-  by over `colour_tolerance`.
+@functools.partial(jax.jit, static_argnums=5)
+def views_seeing(photos, depths, alphas, cameras, i, colour_tolerances):
+  """How many other views see each of view i's surface points, int [H, W],
+  and how many of those hold a colour that differs from its own by over
+  each of `colour_tolerances`, int [T, H, W] (one projection for all).
 
   Args:
     photos: float [V, H, W, 3]; depths, alphas: float [V, H, W], the
       renders' expected depth and alpha; cameras: camera.Camera stacked
-      [V] (one canvas size); i: int [], the view; colour_tolerance: float.
+      [V] (one canvas size); i: int [], the view; colour_tolerances: a
+      tuple of T floats (static).
   """
   _, h, w = depths.shape
   rot, trans = cameras.rotation, cameras.translation
@@ -133,7 +135,7 @@ def views_seeing(photos, depths, alphas, cameras, i, colour_tolerance):
                < DEPTH_TOLERANCE * zj)
             & (_bilinear(alphas[j], uj, vj) > 0.5))
     differ = jnp.mean(jnp.abs(_bilinear(photos[j], uj, vj) - photos[i]), -1)
-    return seen, seen & (differ > colour_tolerance)
+    return seen, jnp.stack([seen & (differ > t) for t in colour_tolerances])
 
   seen, differs = jax.lax.map(other, jnp.arange(depths.shape[0]))
   return seen.sum(0), differs.sum(0)
@@ -157,9 +159,12 @@ def released(held, seen, differs, min_seen: int = MIN_SEEN):
 def _renders(state, cfg, views):
   """float32 [V, H, W, 3] colours, [V, H, W] depths and alphas."""
   bg = jnp.asarray(cfg.train.background, jnp.float32)
-  render = jax.jit(lambda cam: rasterize.render(state.params, state.alive,
-                                                cam, bg, cfg.render))
-  outs = [render(camera_lib.camera_at(views.cameras, i))
+  # The model is an argument, not a constant of the trace: closed over, XLA
+  # spends seconds constant-folding it.
+  render = jax.jit(lambda params, alive, cam: rasterize.render(
+      params, alive, cam, bg, cfg.render))
+  outs = [render(state.params, state.alive,
+                 camera_lib.camera_at(views.cameras, i))
           for i in range(len(views))]
   return tuple(np.stack([np.asarray(getattr(o, k)) for o in outs])
                for k in ("image", "depth", "alpha"))
@@ -197,10 +202,11 @@ def map_limits_report(workdir: str) -> dict:
           else np.asarray(state.maps.memory))
   if held is not None:
     out["memory"] = {"alone": scores(held, truth), "release": {}}
-  for tol in COLOUR_TOLERANCES:
-    counts = [tuple(map(np.asarray, views_seeing(photos, depths, alphas,
-                                                 cams, i, tol)))
-              for i in range(len(views))]
+  seeing = [tuple(map(np.asarray, views_seeing(photos, depths, alphas, cams,
+                                               i, COLOUR_TOLERANCES)))
+            for i in range(len(views))]
+  for t, tol in enumerate(COLOUR_TOLERANCES):
+    counts = [(seen, differs[t]) for seen, differs in seeing]
     mv = np.stack([disagrees(*c) for c in counts])
     out["multiview"][str(tol)] = {"alone": scores(mv, truth),
                                   "with_residual": scores(mv & over_median,

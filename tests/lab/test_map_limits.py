@@ -64,9 +64,10 @@ def _plane_views():
 
 
 def _counts(photos, depths, alphas, cams, i):
-  return tuple(np.asarray(x) for x in map_limits.views_seeing(
+  seen, differs = map_limits.views_seeing(
       jnp.asarray(photos), jnp.asarray(depths), jnp.asarray(alphas), cams,
-      i, 0.1))
+      i, (0.1,))
+  return np.asarray(seen), np.asarray(differs[0])
 
 
 def test_disagreement_finds_the_patch_only_where_it_is():
@@ -117,3 +118,18 @@ def test_release_lets_go_of_held_static_scene_only():
   # A pixel too few views see stays held; nothing unheld is released.
   assert not out[~held].any()
   assert not map_limits.released(held, seen, differs, min_seen=9).any()
+
+
+def test_one_projection_counts_every_tolerance():
+  photos, depths, alphas, cams = _plane_views()
+  args = (jnp.asarray(photos), jnp.asarray(depths), jnp.asarray(alphas),
+          cams, 1)
+  seen, differs = map_limits.views_seeing(*args, (0.05, 0.1, 0.2))
+  assert differs.shape == (3,) + seen.shape
+  for t, tol in enumerate((0.05, 0.1, 0.2)):
+    alone_seen, alone = map_limits.views_seeing(*args, (tol,))
+    np.testing.assert_array_equal(alone_seen, seen)
+    np.testing.assert_array_equal(alone[0], differs[t])
+  # Counts fall as the tolerance grows; the patch differs at every one.
+  assert (np.diff(np.asarray(differs), axis=0) <= 0).all()
+  assert np.asarray(differs)[-1, 8:14, 12:20].any()
