@@ -183,11 +183,21 @@ def _bin(proj: project_lib.Projected, grid: blend_lib.Grid):
 
   order = _depth_order(proj.depths, proj.valid)
   counts = n_tiles[order]
+  # The rows that emit intersections, compacted in depth order: each has
+  # at least one, so a block of `block` intersections is emitted by at most
+  # `block` consecutive emitters, and a block finds each intersection's
+  # emitter by a running count over that window instead of a binary search
+  # over all rows (at 1e5 splats and 1.8M intersections: ~25 against ~85 ms).
+  emits = counts > 0
+  slot = jnp.cumsum(emits, dtype=jnp.int32) - 1
+  rank = jnp.zeros(n, jnp.int32).at[jnp.where(emits, slot, n)].set(
+      jnp.arange(n, dtype=jnp.int32), mode="drop", unique_indices=True)
+  emitted = jnp.where(jnp.arange(n) <= slot[-1], counts[rank], 0)
+  emitter = order[rank]                        # Gaussian id of each emitter
   # jnp.cumsum, not lax.associative_scan: 3.5x slower to run at 1M ints
-  # (7.5 vs 2.1 ms) but 0.5-0.7 s less to compile per call site, and the
-  # ladder below has one per rung.
-  ends = jnp.cumsum(counts)
-  starts = ends - counts
+  # (7.5 vs 2.1 ms) but 0.5-0.7 s less to compile per call site.
+  ends = jnp.cumsum(emitted)
+  starts = ends - emitted
   total = ends[-1]
 
   # Keys are built block by block in a while loop (one compiled body, as
@@ -196,24 +206,28 @@ def _bin(proj: project_lib.Projected, grid: blend_lib.Grid):
   # of XLA:CPU compile per rung.
   block = min(_KEY_BLOCK, capacity)
   num_blocks = -(-capacity // block)
+  # starts, then past the last emitter a value above every intersection.
+  starts_p = jnp.concatenate([starts, jnp.full(block + 1, capacity + block,
+                                               starts.dtype)])
 
   def key_block(i, buf):
-    """Writes the (tile, depth rank) keys of intersections [i B, i B + B)."""
-    m = i * block + jnp.arange(block, dtype=jnp.int32)
-    # owner[m]: depth rank of the Gaussian that emits intersection m, i.e.
-    # the last rank whose start is <= m (zero-count ranks share the start
-    # of the next rank, so they are never the last). `starts` is sorted:
-    # a binary search, O(B log N) per block, where a scatter of all N
-    # starts cost O(N) per block.
-    owner = jnp.clip(jnp.searchsorted(starts, m, side="right") - 1, 0, n - 1)
+    """Writes the (tile, emitter) keys of intersections [i B, i B + B)."""
+    first = i * block
+    m = first + jnp.arange(block, dtype=jnp.int32)
+    # The emitter of intersection m is the last whose start is <= m: from
+    # the one that holds `first`, one more for each start passed.
+    e0 = jnp.searchsorted(starts, first, side="right").astype(jnp.int32) - 1
+    later = jax.lax.dynamic_slice(starts_p, (e0 + 1,), (block,)) - first
+    passed = jnp.zeros(block, jnp.int32).at[later].add(1, mode="drop")
+    owner = jnp.clip(e0 + jnp.cumsum(passed), 0, n - 1)
     local = m - starts[owner]
-    g = order[owner]
+    g = emitter[owner]
     width = jnp.maximum(span[g, 0], 1)
     tile = ((lo_i[g, 1] + local // width) * grid.tiles_x
             + lo_i[g, 0] + local % width)
     key = (tile.astype(jnp.uint32) << rank_bits) | owner.astype(jnp.uint32)
     key = jnp.where(m < total, key, _NO_KEY)
-    return jax.lax.dynamic_update_slice(buf, key, (i * block,))
+    return jax.lax.dynamic_update_slice(buf, key, (first,))
 
   trips = jnp.minimum(-(-total // block), num_blocks)
   keys = jax.lax.fori_loop(0, trips, key_block,
@@ -233,8 +247,8 @@ def _bin(proj: project_lib.Projected, grid: blend_lib.Grid):
   branch = jnp.maximum(jnp.sum(jnp.array(sizes) >= total) - 1, 0)
   key = jax.lax.switch(branch, [functools.partial(sorted_keys, sz)
                                 for sz in sizes])
-  gauss = order[(key & jnp.uint32((1 << rank_bits) - 1)).astype(jnp.int32)
-                .clip(0, n - 1)]
+  gauss = emitter[(key & jnp.uint32((1 << rank_bits) - 1)).astype(jnp.int32)
+                  .clip(0, n - 1)]
   bounds = jnp.searchsorted(
       key, jnp.arange(t + 1, dtype=jnp.uint32) << rank_bits).astype(jnp.int32)
   start = bounds[:-1]
