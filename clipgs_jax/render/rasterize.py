@@ -144,6 +144,44 @@ def _depth_order(depths: jax.Array, valid: jax.Array) -> jax.Array:
   return jax.lax.cond(longest <= _MAX_TIE, by_key, argsort)
 
 
+def _reaches(tx, ty, ellipse, size: int):
+  """Whether a splat's alpha can reach the blend's threshold in a tile.
+
+  True where the least power 0.5 (a x^2 + c y^2) + b x y over the box of
+  the tile's pixel centres (x, y relative to the splat's mean) is at most
+  `level` = log(opacity / ALPHA_THRESHOLD): 0 if the box holds the mean,
+  else the least over its four edges, each a clamped 1D minimum. The box
+  holds every pixel centre, and the slack covers float rounding (terms of
+  size s round by ~1e-7 s), so a tile where the blend finds alpha above the
+  threshold is never dropped. tx, ty: int [B]; ellipse: float [B, 6],
+  the mean (2), conic (3) and level of each splat.
+  """
+  mean_x, mean_y, a, b, c, level = jnp.moveaxis(ellipse, -1, 0)
+  x0 = (tx * size).astype(ellipse.dtype) + 0.5 - mean_x
+  y0 = (ty * size).astype(ellipse.dtype) + 0.5 - mean_y
+  x1, y1 = x0 + (size - 1), y0 + (size - 1)
+  a, c = jnp.maximum(a, 1e-30), jnp.maximum(c, 1e-30)
+
+  def power(x, y):
+    return 0.5 * (a * x * x + c * y * y) + b * x * y
+
+  def on_row(y):      # least over x in [x0, x1] at this y
+    return power(jnp.clip(-b * y / a, x0, x1), y)
+
+  def on_column(x):   # least over y in [y0, y1] at this x
+    return power(x, jnp.clip(-b * x / c, y0, y1))
+
+  least = jnp.minimum(jnp.minimum(on_row(y0), on_row(y1)),
+                      jnp.minimum(on_column(x0), on_column(x1)))
+  holds_mean = (x0 <= 0) & (x1 >= 0) & (y0 <= 0) & (y1 >= 0)
+  least = jnp.where(holds_mean, 0.0, least)
+  far_x = jnp.maximum(jnp.abs(x0), jnp.abs(x1))
+  far_y = jnp.maximum(jnp.abs(y0), jnp.abs(y1))
+  size_of_terms = 0.5 * (a * far_x * far_x + c * far_y * far_y) + jnp.abs(
+      b * far_x * far_y)
+  return least <= level * (1 + 1e-3) + 1e-5 * size_of_terms
+
+
 def _bin(proj: project_lib.Projected, grid: blend_lib.Grid):
   """Depth-sorted per-tile lists as one sorted array plus tile ranges.
 
@@ -151,8 +189,10 @@ def _bin(proj: project_lib.Projected, grid: blend_lib.Grid):
     gauss: int32 [T * K], Gaussian ids grouped by tile, near to far.
     start: int32 [T], first entry of each tile in `gauss`.
     count: int32 [T], entries of each tile.
-    num_overflow: int32 [], intersections the buffer could not hold.
-    max_count: int32 [], longest tile list (exact even on overflow).
+    num_overflow: int32 [], intersections the buffer could not hold (the
+      farthest; once the buffer is full, counted by tile rectangle).
+    max_count: int32 [], longest tile list; on overflow, the most tile
+      rectangles over one tile (an upper bound).
   """
   n = proj.depths.shape[0]
   t = grid.num_tiles
@@ -171,7 +211,7 @@ def _bin(proj: project_lib.Projected, grid: blend_lib.Grid):
   hi_i = jnp.clip(hi, -1, limit).astype(jnp.int32)
   span = jnp.maximum(hi_i - lo_i + 1, 0) * (hi >= 0) * (lo <= limit)
   n_tiles = jnp.where(proj.valid, span[:, 0] * span[:, 1], 0)     # [N]
-  # Exact per-tile counts from a 2D difference array of the tile rectangles:
+  # Per-tile counts of the tile rectangles from a 2D difference array:
   # O(N + T), and independent of how many intersections the buffer holds.
   hit = (n_tiles > 0).astype(jnp.int32)
   x0, y0 = lo_i[:, 0], lo_i[:, 1]
@@ -203,15 +243,26 @@ def _bin(proj: project_lib.Projected, grid: blend_lib.Grid):
   # Keys are built block by block in a while loop (one compiled body, as
   # many trips as the view's intersections need), then only the sort runs
   # on a ladder of buffer sizes: building them inside each rung cost ~0.45 s
-  # of XLA:CPU compile per rung.
+  # of XLA:CPU compile per rung. A rectangle's tile that the splat's
+  # ellipse misses gets no key (_reaches), so neither the sort nor the
+  # blend sees it; the kept keys are packed in emission order.
   block = min(_KEY_BLOCK, capacity)
-  num_blocks = -(-capacity // block)
   # starts, then past the last emitter a value above every intersection.
-  starts_p = jnp.concatenate([starts, jnp.full(block + 1, capacity + block,
+  starts_p = jnp.concatenate([starts, jnp.full(block + 1, total + block,
                                                starts.dtype)])
+  # What a block reads of an emitter, gathered once in emission order and
+  # packed in rows (one gather each a block instead of one per field):
+  # its first intersection and tile rectangle, and its ellipse.
+  rect = jnp.stack([starts, lo_i[emitter, 0], lo_i[emitter, 1],
+                    jnp.maximum(span[emitter, 0], 1)], -1)
+  level = jnp.log(jnp.maximum(proj.opacities / project_lib.ALPHA_THRESHOLD,
+                              1.0))
+  ellipse = jnp.concatenate([proj.means2d, proj.conics, level[:, None]],
+                            -1)[emitter]
 
-  def key_block(i, buf):
-    """Writes the (tile, emitter) keys of intersections [i B, i B + B)."""
+  def key_block(c):
+    """Packs the (tile, emitter) keys of intersections [i B, i B + B)."""
+    i, filled, buf = c
     first = i * block
     m = first + jnp.arange(block, dtype=jnp.int32)
     # The emitter of intersection m is the last whose start is <= m: from
@@ -220,18 +271,28 @@ def _bin(proj: project_lib.Projected, grid: blend_lib.Grid):
     later = jax.lax.dynamic_slice(starts_p, (e0 + 1,), (block,)) - first
     passed = jnp.zeros(block, jnp.int32).at[later].add(1, mode="drop")
     owner = jnp.clip(e0 + jnp.cumsum(passed), 0, n - 1)
-    local = m - starts[owner]
-    g = emitter[owner]
-    width = jnp.maximum(span[g, 0], 1)
-    tile = ((lo_i[g, 1] + local // width) * grid.tiles_x
-            + lo_i[g, 0] + local % width)
-    key = (tile.astype(jnp.uint32) << rank_bits) | owner.astype(jnp.uint32)
-    key = jnp.where(m < total, key, _NO_KEY)
-    return jax.lax.dynamic_update_slice(buf, key, (first,))
+    start, lo_x, lo_y, width = jnp.moveaxis(rect[owner], -1, 0)
+    local = m - start
+    tx = lo_x + local % width
+    ty = lo_y + local // width
+    keep = (m < total) & _reaches(tx, ty, ellipse[owner], grid.tile)
+    key = (((ty * grid.tiles_x + tx).astype(jnp.uint32) << rank_bits)
+           | owner.astype(jnp.uint32))
+    slot = filled + jnp.cumsum(keep, dtype=jnp.int32) - 1
+    buf = buf.at[jnp.where(keep, slot, capacity)].set(key, mode="drop")
+    return i + 1, filled + jnp.sum(keep, dtype=jnp.int32), buf
 
-  trips = jnp.minimum(-(-total // block), num_blocks)
-  keys = jax.lax.fori_loop(0, trips, key_block,
-                           jnp.full(num_blocks * block, _NO_KEY))
+  def more(c):
+    # Past a full buffer only the farthest splats' entries are left, and
+    # they are dropped (counted by their rectangles, without the test).
+    i, filled, _ = c
+    return (i * block < total) & (filled < capacity)
+
+  trips, filled, keys = jax.lax.while_loop(
+      more, key_block,
+      (jnp.int32(0), jnp.int32(0), jnp.full(capacity, _NO_KEY)))
+  kept = jnp.minimum(filled, capacity)
+  num_overflow = filled - kept + jnp.maximum(total - trips * block, 0)
 
   def sorted_keys(size):
     """The first `size` keys, sorted, padded to the buffer."""
@@ -244,7 +305,7 @@ def _bin(proj: project_lib.Projected, grid: blend_lib.Grid):
   sizes = [capacity]
   while sizes[-1] * 2 // 3 >= _MIN_SORT_BUFFER:
     sizes.append(sizes[-1] * 2 // 3)
-  branch = jnp.maximum(jnp.sum(jnp.array(sizes) >= total) - 1, 0)
+  branch = jnp.maximum(jnp.sum(jnp.array(sizes) >= kept) - 1, 0)
   key = jax.lax.switch(branch, [functools.partial(sorted_keys, sz)
                                 for sz in sizes])
   gauss = emitter[(key & jnp.uint32((1 << rank_bits) - 1)).astype(jnp.int32)
@@ -253,10 +314,11 @@ def _bin(proj: project_lib.Projected, grid: blend_lib.Grid):
       key, jnp.arange(t + 1, dtype=jnp.uint32) << rank_bits).astype(jnp.int32)
   start = bounds[:-1]
   count = bounds[1:] - start
-  # Dropped: the intersections past the buffer (the farthest Gaussians,
-  # since intersections are emitted in depth order).
-  num_overflow = total - jnp.sum(count)
-  return gauss, start, count, num_overflow, jnp.max(true_count)
+  # On overflow the lists lack the farthest splats, so the rectangles'
+  # counts bound the longest list instead.
+  max_count = jnp.where(num_overflow > 0, jnp.max(true_count),
+                        jnp.max(count))
+  return gauss, start, count, num_overflow, max_count
 
 
 def _check_evidence_map(evidence_map, cam: camera_lib.Camera) -> None:
