@@ -84,6 +84,12 @@ class Grid:
     return -(-self.tile_budget // self.chunk_size)
 
 
+def power(dx, dy, a, b, c):
+  """0.5 (a dx^2 + c dy^2) + b dx dy: the exponent of a splat with conic
+  (a, b, c) at offset (dx, dy) from its mean (any broadcastable arrays)."""
+  return 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+
+
 def alpha(pix, mean, conic, opacity):
   """Blend alpha of one entry per lane at every pixel of the lane's tile.
 
@@ -94,11 +100,10 @@ def alpha(pix, mean, conic, opacity):
   """
   dx = pix[..., 0] - mean[:, None, 0]
   dy = pix[..., 1] - mean[:, None, 1]
-  ca, cb, cc = conic[:, None, 0], conic[:, None, 1], conic[:, None, 2]
-  power = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-  gauss = jnp.exp(-jnp.maximum(power, 0.0))
+  p = power(dx, dy, conic[:, None, 0], conic[:, None, 1], conic[:, None, 2])
+  gauss = jnp.exp(-jnp.maximum(p, 0.0))
   raw = opacity[:, None] * gauss
-  keep = (power >= 0) & (raw >= project_lib.ALPHA_THRESHOLD)
+  keep = (p >= 0) & (raw >= project_lib.ALPHA_THRESHOLD)
   a = jnp.where(keep, jnp.minimum(raw, MAX_ALPHA), 0.0)
   return a, raw, gauss, keep
 

@@ -162,14 +162,11 @@ def _reaches(tx, ty, ellipse, size: int):
   x1, y1 = x0 + (size - 1), y0 + (size - 1)
   a, c = jnp.maximum(a, 1e-30), jnp.maximum(c, 1e-30)
 
-  def power(x, y):
-    return 0.5 * (a * x * x + c * y * y) + b * x * y
-
   def on_row(y):      # least over x in [x0, x1] at this y
-    return power(jnp.clip(-b * y / a, x0, x1), y)
+    return blend_lib.power(jnp.clip(-b * y / a, x0, x1), y, a, b, c)
 
   def on_column(x):   # least over y in [y0, y1] at this x
-    return power(x, jnp.clip(-b * x / c, y0, y1))
+    return blend_lib.power(x, jnp.clip(-b * x / c, y0, y1), a, b, c)
 
   least = jnp.minimum(jnp.minimum(on_row(y0), on_row(y1)),
                       jnp.minimum(on_column(x0), on_column(x1)))
@@ -487,8 +484,7 @@ def blend_stats(proj: project_lib.Projected, cam: camera_lib.Camera,
     gid = gauss[start[t]:start[t] + fwd_need[t]]
     d = pix[t][:, None, :] - means[gid][None]                    # [P, E, 2]
     c = conics[gid]
-    power = (0.5 * (c[:, 0] * d[..., 0] ** 2 + c[:, 2] * d[..., 1] ** 2)
-             + c[:, 1] * d[..., 0] * d[..., 1])
+    power = blend_lib.power(d[..., 0], d[..., 1], c[:, 0], c[:, 1], c[:, 2])
     raw = opac[gid] * np.exp(-np.maximum(power, 0.0))
     nonzero += int(np.sum((power >= 0)
                           & (raw >= project_lib.ALPHA_THRESHOLD)))
